@@ -1,0 +1,130 @@
+"""The `degusta` command: one thin function per verb, no logic of its own.
+
+Usage (CPU smoke run, a minute):
+    degusta data generate naturalistic --out data/naturalistic
+    degusta data episodes data/naturalistic --context 4 --split test --out data/naturalistic/episodes_k4.jsonl
+    degusta predict --config configs/baseline_copy_nearest.yaml
+    degusta evaluate --dataset data/naturalistic --predictions runs/copy_nearest/predictions.jsonl --out runs/eval
+
+Every user mistake raises DegustaError: printed on one line as "degusta: error: ...", exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+
+
+def cmd_data_generate(args) -> str:
+    from degusta_learn.synth import generate_dataset
+
+    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite)
+    return f"wrote the {args.name} dataset (SYNTHETIC) to {out}"
+
+
+def cmd_data_validate(args) -> str:
+    from degusta_learn.scene import load_dataset
+
+    ds = load_dataset(args.dir)
+    ratings = f", {len(ds.ratings)} ratings" if ds.ratings is not None else ""
+    return (f"{args.dir}: valid — {len(ds.catalog)} objects, {len(ds.tables)} tables, "
+            f"{len(ds.participants)} participants, {len(ds.arrangements)} arrangements{ratings}")
+
+
+def cmd_data_episodes(args) -> str:
+    from degusta_learn.scene import load_dataset, make_episodes, write_episodes
+
+    episodes = make_episodes(load_dataset(args.dir), args.context, args.split, args.seed)
+    write_episodes(args.out, episodes)
+    return f"wrote {len(episodes)} episodes (context {args.context}, split {args.split}) to {args.out}"
+
+
+def cmd_predict(args) -> str:
+    from degusta_learn.methods import run_predict
+
+    overrides = list(args.set) + (["dry_run=true"] if args.dry_run else [])
+    out = run_predict(args.config, overrides)
+    return f"wrote predictions to {out}" if out else "dry run: nothing written"
+
+
+def cmd_train(args) -> str:
+    from degusta_learn.methods import run_train
+
+    return f"training finished; outputs in {run_train(args.config, args.set)}"
+
+
+def cmd_evaluate(args) -> str:
+    from degusta_learn.evaluate import evaluate_files
+
+    out = evaluate_files(args.dataset, args.predictions, args.out, episodes=args.episodes,
+                         n_bootstrap=args.bootstrap, seed=args.seed)
+    return f"wrote metrics.json, per_episode.csv and report.md to {out}"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="degusta", description="Personalized table setting: data, "
+                                     "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.")
+    verbs = parser.add_subparsers(dest="verb", required=True)
+
+    data = verbs.add_parser("data", help="generate, validate and cut datasets").add_subparsers(dest="data_verb", required=True)
+    p = data.add_parser("generate", help="write an embedded synthetic dataset")
+    p.add_argument("name", choices=["naturalistic", "simulated"])
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    p.set_defaults(func=cmd_data_generate)
+    p = data.add_parser("validate", help="check a dataset folder; exit 0 or name the file/line/field")
+    p.add_argument("dir", type=Path)
+    p.set_defaults(func=cmd_data_validate)
+    p = data.add_parser("episodes", help="write episodes.jsonl for a context length and split")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--context", type=int, choices=[0, 2, 4], required=True)
+    p.add_argument("--split", default="test", choices=["train", "val", "test", "all"])
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, type=Path)
+    p.set_defaults(func=cmd_data_episodes)
+
+    p = verbs.add_parser("predict", help="run any method from a YAML config -> predictions.jsonl")
+    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--dry-run", action="store_true", help="count requests and cost; call nothing")
+    p.set_defaults(func=cmd_predict)
+
+    p = verbs.add_parser("train", help="train a learned baseline or fine-tune a VLM from a YAML config")
+    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.set_defaults(func=cmd_train)
+
+    p = verbs.add_parser("evaluate", help="predictions -> metrics.json, per_episode.csv, report.md")
+    p.add_argument("--dataset", required=True, type=Path)
+    p.add_argument("--predictions", required=True, type=Path, nargs="+")
+    p.add_argument("--episodes", type=Path, help="the episode set the predictions must cover (optional)")
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap resamples for the intervals")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_evaluate)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    func: Callable = args.func
+    try:
+        message = func(args)
+    except DegustaError as e:
+        print(f"degusta: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("degusta: interrupted; finished work is kept (re-run to resume)", file=sys.stderr)
+        return 130
+    if message:
+        print(message)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

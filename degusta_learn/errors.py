@@ -1,0 +1,10 @@
+"""The one exception type for user mistakes.
+
+Anything a user can cause (a malformed dataset, a bad config key, an unknown method) raises
+`DegustaError` with a message that names the file, line, field or key. The CLI prints that message on
+one line and exits non-zero; every other exception is a bug and keeps its traceback.
+"""
+
+
+class DegustaError(Exception):
+    """A user-facing error: the message alone must say what is wrong and where."""
