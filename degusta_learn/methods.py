@@ -20,7 +20,14 @@ from typing import Any
 from degusta_learn.config import apply_overrides, from_dict, read_yaml
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import (
-    CONTEXT_LENGTHS, Dataset, Episode, Prediction, load_dataset, make_episodes, read_episodes, write_predictions,
+    CONTEXT_LENGTHS,
+    Dataset,
+    Episode,
+    Prediction,
+    load_dataset,
+    make_episodes,
+    read_episodes,
+    write_predictions,
 )
 
 

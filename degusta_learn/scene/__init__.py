@@ -1,11 +1,25 @@
 """The scene model (numpy only): catalog, tables, arrangements, episodes and the dataset format."""
 
 from degusta_learn.scene.catalog import (
-    COLORS, MATCH_FEATURES, MATERIALS, TYPE_SIZE, TYPES, Catalog, CatalogObject, default_catalog, object_size,
+    COLORS,
+    MATCH_FEATURES,
+    MATERIALS,
+    TYPE_SIZE,
+    TYPES,
+    Catalog,
+    CatalogObject,
+    default_catalog,
+    object_size,
 )
 from degusta_learn.scene.dataset import Dataset, load_dataset, parse_placements, save_dataset
 from degusta_learn.scene.episodes import (
-    CONTEXT_LENGTHS, SPLITS, make_episodes, participants_in, read_episodes, split_participants, write_episodes,
+    CONTEXT_LENGTHS,
+    SPLITS,
+    make_episodes,
+    participants_in,
+    read_episodes,
+    split_participants,
+    write_episodes,
 )
 from degusta_learn.scene.predictions import read_predictions, write_predictions
 from degusta_learn.scene.tables import Table, default_tables

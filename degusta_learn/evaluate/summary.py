@@ -1,0 +1,67 @@
+"""Per-method summaries with bootstrap intervals: the content of metrics.json.
+
+For each method: `n_episodes`, `failure_rate`, and for each of object_accuracy, rmsd,
+rmsd_unregistered and count_error a {"mean", "ci_low", "ci_high"} (percentile bootstrap over
+episodes); `acceptable_at` maps "0.01", "0.05", "0.10" to the fraction of episodes whose prediction
+has Kabsch RMSD <= t. A failed or empty prediction has object accuracy 0, is not acceptable at any t
+and is left out of the RMSD means (which is why failure_rate always stands beside them).
+`by_context` repeats the summary per context length when the episodes span several.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+import numpy as np
+
+from degusta_learn.evaluate.scoring import EpisodeRow
+from degusta_learn.metrics import THRESHOLDS, bootstrap_ci, fraction_acceptable
+
+METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error")
+
+
+def _interval(values: np.ndarray, n_bootstrap: int, seed: int) -> dict:
+    if not np.isfinite(values).any():
+        return {"mean": None, "ci_low": None, "ci_high": None}
+    mean, lo, hi = bootstrap_ci(values, n_resamples=n_bootstrap, seed=seed)
+    return {"mean": _num(mean), "ci_low": _num(lo), "ci_high": _num(hi)}
+
+
+def _num(x: float) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), 6)
+
+
+def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0) -> dict:
+    """Summary of one method's rows (see module docstring)."""
+    out: dict = {"n_episodes": len(rows),
+                 "failure_rate": round(sum(r.failed for r in rows) / len(rows), 6) if rows else None}
+    for name in METRICS:
+        values = np.array([getattr(r, name) for r in rows], dtype=float)
+        out[name] = _interval(values, n_bootstrap, seed)
+    rmsds = np.array([r.rmsd for r in rows], dtype=float)
+    out["acceptable_at"] = {f"{t:.2f}": round(v, 6) for t, v in fraction_acceptable(rmsds, THRESHOLDS).items()}
+    tokens = [r.tokens for r in rows if r.tokens is not None]
+    costs = [r.cost_usd for r in rows if r.cost_usd is not None]
+    if tokens:
+        out["tokens_per_episode"] = round(float(np.mean(tokens)), 1)
+    if costs:
+        out["cost_usd_per_episode"] = round(float(np.mean(costs)), 6)
+        out["cost_usd_total"] = round(float(np.sum(costs)), 6)
+    return out
+
+
+def summarize(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0) -> dict[str, dict]:
+    """{method: summary}, with `by_context` per method when several context lengths are present."""
+    by_method: dict[str, list[EpisodeRow]] = defaultdict(list)
+    for r in rows:
+        by_method[r.method].append(r)
+    result = {}
+    for method, mrows in by_method.items():
+        summary = summarize_rows(mrows, n_bootstrap, seed)
+        contexts = sorted({r.context for r in mrows if r.context is not None})
+        if len(contexts) > 1:
+            summary["by_context"] = {str(k): summarize_rows([r for r in mrows if r.context == k], n_bootstrap, seed)
+                                     for k in contexts}
+        result[method] = summary
+    return result

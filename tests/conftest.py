@@ -1,0 +1,36 @@
+"""Shared fixtures: a small hand-built dataset (no generator needed) and its folder on disk."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from degusta_learn.scene import Arrangement, Dataset, Placement, default_catalog, default_tables, save_dataset
+
+
+def make_small_dataset(n_participants: int = 10, n_trials: int = 5, seed: int = 0) -> Dataset:
+    """Participants who each set a fixed-ish layout of 3-5 objects on every table, with noise."""
+    rng = np.random.default_rng(seed)
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    arrangements = []
+    for p in range(n_participants):
+        n_obj = int(rng.integers(3, 6))
+        objects = rng.choice(catalog.ids, size=n_obj, replace=False).tolist()
+        layout = rng.uniform(0.3, 0.7, size=(n_obj, 2))
+        rot = rng.choice([0.0, 90.0, 180.0, 270.0], size=n_obj)
+        for t in range(n_trials):
+            table = t % len(tables)
+            xy = np.clip(layout + rng.normal(0, 0.01, size=layout.shape), 0.25, 0.75)
+            arrangements.append(Arrangement(f"p{p:03d}", t, table, tuple(
+                Placement(int(o), float(x), float(y), float(r)) for o, (x, y), r in zip(objects, xy, rot))))
+    return Dataset(catalog, tables, arrangements, meta={"name": "small-test", "synthetic": True})
+
+
+@pytest.fixture
+def small_dataset() -> Dataset:
+    return make_small_dataset()
+
+
+@pytest.fixture
+def small_dataset_dir(tmp_path, small_dataset):
+    return save_dataset(small_dataset, tmp_path / "small")

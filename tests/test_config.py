@@ -1,0 +1,45 @@
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from degusta_learn.config import load_config
+from degusta_learn.errors import DegustaError
+
+
+@dataclass
+class Inner:
+    name: str = "openai"
+    n: int = 5
+
+
+@dataclass
+class Outer:
+    method: Literal["a", "b"]
+    rate: float = 0.1
+    tags: list[str] = field(default_factory=list)
+    inner: Inner = field(default_factory=Inner)
+    path: str | None = None
+
+
+def test_yaml_overrides_and_nested(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("method: a\ninner:\n  n: 3\n")
+    cfg = load_config(Outer, p, ["inner.name=hf", "rate=1", "tags=[x, y]", "path=null"])
+    assert cfg == Outer("a", 1.0, ["x", "y"], Inner("hf", 3), None)
+
+
+@pytest.mark.parametrize("text, sets, message", [
+    ("method: a\nlr: 3\n", [], "c.yaml: unknown key 'lr'"),
+    ("method: a\ninner: {nn: 3}\n", [], "c.yaml: unknown key 'inner.nn'"),
+    ("method: a\n", ["inner.n=five"], "c.yaml: inner.n: expected int, got 'five'"),
+    ("method: c\n", [], "c.yaml: method: expected one of ['a', 'b'], got 'c'"),
+    ("rate: 2\n", [], "c.yaml: missing required key 'method'"),
+    ("method: [a\n", [], "c.yaml:2: invalid YAML"),
+])
+def test_errors_name_the_key(tmp_path, text, sets, message):
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    with pytest.raises(DegustaError) as err:
+        load_config(Outer, p, sets)
+    assert message in str(err.value)
