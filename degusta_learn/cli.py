@@ -65,6 +65,13 @@ def cmd_evaluate(args) -> str:
     return f"wrote metrics.json, per_episode.csv and report.md to {out}"
 
 
+def cmd_compare(args) -> str:
+    from degusta_learn.evaluate.compare import run_compare
+
+    out = run_compare(args.config, args.set)
+    return f"wrote the comparison report to {out / 'report.md'} (and report.html)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="degusta", description="Personalized table setting: data, "
                                      "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.")
@@ -107,6 +114,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap resamples for the intervals")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_evaluate)
+
+    p = verbs.add_parser("compare", help="several methods on the same episodes -> one report folder")
+    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.set_defaults(func=cmd_compare)
     return parser
 
 

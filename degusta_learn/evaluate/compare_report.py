@@ -1,0 +1,151 @@
+"""Writing the comparison report folder: markdown + HTML, metrics.json, per_episode.csv, plots, images."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import markdown
+import numpy as np
+
+from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
+from degusta_learn.evaluate.report import (
+    METRIC_NOTES, acceptability_lines, context_table, method_table, write_per_episode_csv,
+)
+from degusta_learn.fileio import atomic_write_json, atomic_write_text
+
+_HTML = """<!doctype html><html><head><meta charset="utf-8"><title>{title}</title><style>
+body{{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}}
+table{{border-collapse:collapse;margin:1em 0;font-size:14px}} td,th{{border:1px solid #ccc;padding:4px 8px}}
+th{{background:#f3f3f3}} img{{max-width:100%}} blockquote{{background:#fff6e0;margin:0;padding:.5em 1em}}
+code{{background:#f3f3f3}}</style></head><body>
+{body}
+</body></html>
+"""
+
+
+def _paired_lines(paired: list[dict]) -> list[str]:
+    if not paired:
+        return []
+    lines = ["Differences b - a on the same episodes (paired bootstrap, 95% interval, two-sided p); "
+             "**bold** where the interval excludes 0.", "",
+             "| a | b | Δ object accuracy | p | Δ RMSD | p |", "|---|---|---|---:|---|---:|"]
+    for e in paired:
+        cells = []
+        for metric in ("object_accuracy", "rmsd"):
+            r = e[metric]
+            if r is None:
+                cells += ["-", "-"]
+                continue
+            text = f"{r['diff']:+.3f} [{r['lo']:+.3f}, {r['hi']:+.3f}]"
+            cells += [f"**{text}**" if r["lo"] > 0 or r["hi"] < 0 else text, f"{r['p_value']:.3f}"]
+        lines.append(f"| {e['a']} | {e['b']} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _paper_table(summary: dict[str, dict], curve: dict[float, float]) -> list[str]:
+    """The paper's Table 1 for every method: acceptable@t beside the rating-based acceptance."""
+    ts = [f"{t:.2f}" for t in sorted(curve)]
+    lines = ["| RMSD threshold | " + " | ".join(ts) + " |", "|---|" + "---:|" * len(ts),
+             "| people: % of ratings with drop < 0.2 | " + " | ".join(f"{curve[float(t)]:.3f}" for t in ts) + " |"]
+    for method, s in summary.items():
+        lines.append(f"| {method}: % of predictions with RMSD <= t | "
+                     + " | ".join(f"{s['acceptable_at'].get(t, float('nan')):.3f}" for t in ts) + " |")
+    return lines
+
+
+def _cost_lines(summary: dict[str, dict]) -> list[str]:
+    lines = ["| method | failure rate | tokens / episode | USD / episode | USD total |", "|---|---:|---:|---:|---:|"]
+    for method, s in summary.items():
+        lines.append(f"| {method} | {s['failure_rate']:.3f} | {s.get('tokens_per_episode', '-')} | "
+                     f"{s.get('cost_usd_per_episode', '-')} | {s.get('cost_usd_total', '-')} |")
+    return lines
+
+
+def _grid_floor(ds) -> float | None:
+    try:
+        from degusta_learn.render.grid import Grid, quantization_rmsd
+
+        return float(quantization_rmsd(ds, Grid(8, 8)))
+    except Exception:  # a floor is a nicety; never lose the report over it
+        return None
+
+
+def _qualitative(cfg, ds, rows, predictions, out: Path) -> list[str]:
+    from degusta_learn.evaluate.qualitative import render_side_by_side
+    from degusta_learn.render.lifting import Renderer
+
+    if not predictions:
+        return []
+    ref = next(iter(predictions))
+    ref_rows = [r for r in rows if r.method == ref and math.isfinite(r.rmsd)]
+    chosen: list[tuple[str, str]] = []
+    if ref_rows:
+        best = min(ref_rows, key=lambda r: (r.rmsd, r.episode))
+        worst = max(ref_rows, key=lambda r: (r.rmsd, r.episode))
+        chosen += [(f"best of {ref}", best.episode), (f"worst of {ref}", worst.episode)]
+    episodes = sorted({r.episode for r in rows})
+    rng = np.random.default_rng(cfg.seed)
+    for i in rng.choice(len(episodes), size=min(cfg.qualitative, len(episodes)), replace=False):
+        chosen.append(("random", episodes[int(i)]))
+    renderer = Renderer.for_dataset(ds, size=cfg.image_size)
+    by = {(r.method, r.episode): r for r in rows}
+    lines = []
+    for n, (why, eid) in enumerate(chosen):
+        panels = {}
+        for method, preds in predictions.items():
+            pred = next(p for p in preds if p.episode == eid)
+            r = by[(method, eid)]
+            score = "failed" if r.failed else f"RMSD {r.rmsd:.3f}, acc {r.object_accuracy:.2f}"
+            panels[method] = (pred.placements, score)
+        first = next(p for p in predictions[ref] if p.episode == eid)
+        name = f"qualitative/{n:02d}.png"
+        render_side_by_side(ds, renderer, first.participant, first.target, panels, out / name)
+        lines += [f"**{why}**: episode `{eid}`", "", f"![{eid}]({name})", ""]
+    return lines
+
+
+def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, predictions, curve, log) -> None:
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_per_episode_csv(out / "per_episode.csv", rows)
+    atomic_write_json(out / "metrics.json", {"dataset": ds.label, "n_episodes": len(episodes), "methods": summary,
+                                             "paired": paired, "failed_methods": failures,
+                                             "rating_acceptance": {f"{t:.2f}": v for t, v in curve.items()}})
+    floor = _grid_floor(ds)
+    plots = out / "plots"
+    lines = [f"# {cfg.title}", "",
+             f"Dataset: **{ds.label}**. Episodes: {len(episodes)} ({cfg.split} participants). "
+             "Intervals are 95% bootstrap intervals over episodes.", ""]
+    if ds.synthetic:
+        lines += ["> SYNTHETIC data generated by degusta_learn: these are not the paper's human-study numbers.", ""]
+    if failures:
+        lines += ["## Methods that failed", ""] + [f"- **{m}**: {msg}" for m, msg in failures.items()] + [""]
+    if summary:
+        log("[compare] plotting")
+        plot_metric_bars(summary, plots / "metrics.png", floor)
+        rmsds = {m: np.array([r.rmsd for r in rows if r.method == m and math.isfinite(r.rmsd)]) for m in summary}
+        plot_acceptability(curve, rmsds, plots / "acceptability.png")
+        has_ctx = plot_context(summary, plots / "context.png", floor) is not None
+        lines += ["## Results", "", *method_table(summary), "", "![metrics](plots/metrics.png)", ""]
+        lines += ["## Acceptability (the paper's Table 1)", "", *acceptability_lines(curve, ds.ratings is not None), "",
+                  *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
+        ctx = context_table(summary)
+        if ctx:
+            lines += ["## Object accuracy and RMSD by context length (the paper's Table 2)", "", *ctx, ""]
+            if has_ctx:
+                lines += ["![context](plots/context.png)", ""]
+        if floor is not None:
+            lines += [f"Grid quantization floor (8 x 8 grid, position -> cells -> position): RMSD {floor:.4f}. "
+                      "No grid-answering method can be more precise than this.", ""]
+        lines += ["## Failures and cost", "", *_cost_lines(summary), ""]
+        lines += ["## Paired comparisons", "", *_paired_lines(paired), ""]
+        log("[compare] rendering qualitative images")
+        lines += ["## Qualitative: ground truth and each method side by side", "",
+                  *_qualitative(cfg, ds, rows, predictions, out)]
+    lines += ["## How to read this", "", METRIC_NOTES, "",
+              "Per-episode scores: `per_episode.csv`; summary: `metrics.json`; predictions: `predictions/`.", ""]
+    text = "\n".join(lines)
+    atomic_write_text(out / "report.md", text)
+    body = markdown.markdown(text, extensions=["tables"])
+    atomic_write_text(out / "report.html", _HTML.format(title=cfg.title, body=body))

@@ -1,0 +1,66 @@
+"""`degusta evaluate`: metrics.json keys, per-episode rows and the report, on hand-made predictions."""
+
+import csv
+import json
+
+import pytest
+
+from degusta_learn.cli import main
+from degusta_learn.scene import Placement, Prediction, load_dataset, make_episodes, write_episodes, write_predictions
+
+
+def _predictions(ds, episodes, method, shift=0.0, fail_every=0):
+    out = []
+    for i, e in enumerate(episodes):
+        gt = ds.arrangement(e.participant, e.target)
+        failed = bool(fail_every) and i % fail_every == 0
+        placements = [] if failed else [Placement(p.object, min(p.x + shift, 1.0), p.y, p.rotation) for p in gt.placements]
+        out.append(Prediction(e.id, e.participant, e.target, method, placements, failed))
+    return out
+
+
+def test_perfect_and_shifted_and_failing_methods(small_dataset_dir, tmp_path, capsys):
+    ds = load_dataset(small_dataset_dir)
+    eps = make_episodes(ds, 2, "all")
+    write_episodes(tmp_path / "eps.jsonl", eps)
+    write_predictions(tmp_path / "perfect.jsonl", _predictions(ds, eps, "perfect"))
+    write_predictions(tmp_path / "shifted.jsonl", _predictions(ds, eps, "shifted", shift=0.05, fail_every=5))
+    out = tmp_path / "eval"
+    code = main(["evaluate", "--dataset", str(small_dataset_dir), "--predictions", str(tmp_path / "perfect.jsonl"),
+                 str(tmp_path / "shifted.jsonl"), "--episodes", str(tmp_path / "eps.jsonl"), "--out", str(out),
+                 "--bootstrap", "200"])
+    assert code == 0, capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    perfect, shifted = metrics["perfect"], metrics["shifted"]
+    assert set(perfect) >= {"n_episodes", "failure_rate", "object_accuracy", "rmsd", "rmsd_unregistered",
+                            "count_error", "acceptable_at"}
+    assert set(perfect["rmsd"]) == {"mean", "ci_low", "ci_high"}
+    assert perfect["object_accuracy"]["mean"] == pytest.approx(1.0)
+    assert perfect["rmsd"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert perfect["acceptable_at"] == {"0.01": 1.0, "0.05": 1.0, "0.10": 1.0}
+    # A rigid shift is registered away by Kabsch but not by the unregistered RMSD.
+    assert shifted["rmsd"]["mean"] < 0.02 < shifted["rmsd_unregistered"]["mean"]
+    assert shifted["failure_rate"] == pytest.approx(0.2)
+    assert shifted["object_accuracy"]["mean"] == pytest.approx(0.8)
+    assert shifted["acceptable_at"]["0.10"] == pytest.approx(0.8)
+    rows = list(csv.DictReader((out / "per_episode.csv").open()))
+    assert len(rows) == 2 * len(eps)
+    report = (out / "report.md").read_text()
+    assert "SYNTHETIC" in report and "| perfect |" in report and "N = 1 gives RMSD 0" in report
+
+
+def test_refuses_unknown_episode_and_missing_predictions(small_dataset_dir, tmp_path, capsys):
+    ds = load_dataset(small_dataset_dir)
+    eps = make_episodes(ds, 2, "all")
+    write_episodes(tmp_path / "eps.jsonl", eps)
+    write_predictions(tmp_path / "few.jsonl", _predictions(ds, eps[:3], "few"))
+    args = ["evaluate", "--dataset", str(small_dataset_dir), "--episodes", str(tmp_path / "eps.jsonl"),
+            "--out", str(tmp_path / "eval")]
+    assert main([*args, "--predictions", str(tmp_path / "few.jsonl")]) == 2
+    assert "episodes have no prediction" in capsys.readouterr().err
+    bad = _predictions(ds, eps, "bad")
+    bad[0].episode = "nobody/t0/k2"
+    write_predictions(tmp_path / "bad.jsonl", bad)
+    assert main([*args, "--predictions", str(tmp_path / "bad.jsonl")]) == 2
+    assert "bad.jsonl:1: field 'episode': unknown episode 'nobody/t0/k2'" in capsys.readouterr().err
+    assert not (tmp_path / "eval").exists()
