@@ -1,0 +1,144 @@
+"""One-to-one matching of predicted to ground-truth objects (DESIGN.md section 6).
+
+Objects are compared by the Hamming distance between their discrete features (`MATCH_FEATURES`: type,
+colours, materials, shape, pattern; integer codes from `Catalog.features`), and matched by scipy's
+Hungarian solver (`linear_sum_assignment`), giving `N = min(len(gt), len(pred))` pairs.
+
+Ties break toward nearer positions. The cost of pairing ground-truth object i with prediction j is
+
+    cost[i, j] = hamming[i, j] + eps * dist[i, j],   eps = 0.5 / (N * max(dist))
+
+with `dist` the Euclidean distance between their (x, y) positions. Any assignment's distance term adds up
+to at most N * eps * max(dist) = 0.5 < 1, the smallest possible difference between two total Hamming
+distances, so distance never overrides Hamming: the result has the minimum total Hamming distance, and
+among those assignments the minimum total distance (a lexicographic optimum). Exact ties left after that
+(same features and same distances) go to scipy's deterministic choice.
+
+Speed: the catalog's pairwise Hamming table is computed once per catalog (cached while the catalog
+lives), so a cost matrix is one table lookup plus the distances; positions travel as complex numbers
+x + iy so a distance matrix is one subtraction and one abs.
+
+Usage:
+    from degusta_learn.metrics import match
+    gt_idx, pred_idx = match(catalog, gt.objects, pred_ids, gt.positions, pred_xy)
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.scene.catalog import Catalog
+
+_TABLE_MAX_OBJECTS = 2048  # pairwise table up to 2048^2 int8 = 4 MiB; larger catalogs compare features
+_CACHE: dict[int, tuple[weakref.ref, FeatureTable]] = {}
+
+
+class FeatureTable:
+    """Per-catalog lookup: object id -> row, and the pairwise Hamming distances between rows."""
+
+    def __init__(self, catalog: Catalog):
+        ids = np.asarray(catalog.ids, dtype=np.int64)
+        self.size = len(ids)
+        self.row = np.full(int(ids.max(initial=-1)) + 1, -1, dtype=np.int64)
+        self.row[ids] = np.arange(len(ids))
+        self.row_of = {int(i): r for r, i in enumerate(ids.tolist())}  # fast path for a few ids
+        self.features = catalog.features(ids)  # (K, F)
+        self.hamming = None
+        if len(ids) <= _TABLE_MAX_OBJECTS:
+            f = self.features
+            self.hamming = (f[:, None, :] != f[None, :, :]).sum(-1).astype(np.int8)  # (K, K)
+
+    def rows(self, ids, what: str) -> np.ndarray:
+        """Rows of `ids` (any shape); DegustaError naming the first id the catalog lacks."""
+        ids = np.asarray(ids, dtype=np.int64)
+        ok = (ids >= 0) & (ids < len(self.row))
+        rows = np.where(ok, self.row[np.where(ok, ids, 0)], -1)
+        if (rows < 0).any():
+            bad = ids.ravel()[np.argmax(rows.ravel() < 0)]
+            raise DegustaError(f"{what}: unknown object id {int(bad)} (not in the catalog of {self.size} objects)")
+        return rows
+
+    def rows_of(self, ids: Sequence[int], what: str) -> list[int]:
+        """Like `rows` for a short list of ids, in plain Python (cheaper for a handful)."""
+        try:
+            return [self.row_of[i] for i in ids]
+        except (KeyError, TypeError):
+            return self.rows(ids, what).tolist()
+
+    def hamming_between(self, gt_rows: np.ndarray, pred_rows: np.ndarray) -> np.ndarray:
+        """(E, n) and (E, m) rows -> (E, n, m) Hamming distances."""
+        if self.hamming is not None:
+            return self.hamming[gt_rows[:, :, None], pred_rows[:, None, :]]
+        fg, fp = self.features[gt_rows], self.features[pred_rows]  # (E, n, F), (E, m, F)
+        return (fg[:, :, None, :] != fp[:, None, :, :]).sum(-1)
+
+
+def feature_table(catalog: Catalog) -> FeatureTable:
+    """The cached FeatureTable of `catalog` (built on first use, dropped when the catalog is)."""
+    hit = _CACHE.get(id(catalog))
+    if hit is not None and hit[0]() is catalog:
+        return hit[1]
+    table = FeatureTable(catalog)
+    key = id(catalog)
+    _CACHE[key] = (weakref.ref(catalog, lambda _ref: _CACHE.pop(key, None)), table)
+    return table
+
+
+def match_costs(hamming: np.ndarray, gt_z: np.ndarray, pred_z: np.ndarray) -> np.ndarray:
+    """Batched matching costs (Hamming + eps * distance, see the module docstring).
+
+    Args:
+        hamming: (E, n, m) Hamming distances, n, m > 0.
+        gt_z: (E, n) complex ground-truth positions x + iy.
+        pred_z: (E, m) complex predicted positions.
+
+    Returns:
+        (E, n, m) float costs; one `linear_sum_assignment` per episode gives the matching.
+    """
+    dist = np.abs(gt_z[:, :, None] - pred_z[:, None, :])  # (E, n, m)
+    n_pairs = min(dist.shape[1], dist.shape[2])
+    dmax = dist.reshape(len(dist), -1).max(axis=1)  # (E,)
+    # Where dmax == 0 every distance is 0, so any finite eps adds nothing.
+    eps = 0.5 / np.maximum(n_pairs * dmax, np.finfo(float).tiny)
+    return hamming + eps[:, None, None] * dist
+
+
+def as_complex(xy) -> np.ndarray:
+    """(..., N, 2) positions -> (..., N) complex x + iy."""
+    return np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128)[..., 0]
+
+
+def match(catalog: Catalog, gt_ids: Sequence[int], pred_ids: Sequence[int], gt_xy, pred_xy
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Match predicted to ground-truth objects: minimum total Hamming distance, ties toward nearer positions.
+
+    Args:
+        catalog: the catalog holding every id.
+        gt_ids: ground-truth object ids, length n.
+        pred_ids: predicted object ids, length m (repeats allowed).
+        gt_xy: (n, 2) ground-truth positions.
+        pred_xy: (m, 2) predicted positions.
+
+    Returns:
+        (gt_idx, pred_idx): index arrays of the min(n, m) matched pairs, gt_idx ascending.
+
+    Raises:
+        DegustaError: an id is not in the catalog, or positions do not fit the ids.
+    """
+    table = feature_table(catalog)
+    g, p = table.rows(list(gt_ids), "ground truth"), table.rows(list(pred_ids), "prediction")
+    gxy = np.asarray(gt_xy, dtype=float).reshape(-1, 2)
+    pxy = np.asarray(pred_xy, dtype=float).reshape(-1, 2)
+    if len(gxy) != len(g) or len(pxy) != len(p):
+        raise DegustaError(f"match: {len(g)} ground-truth ids with {len(gxy)} positions, "
+                           f"{len(p)} predicted ids with {len(pxy)} positions")
+    if len(g) == 0 or len(p) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    cost = match_costs(table.hamming_between(g[None], p[None]), as_complex(gxy)[None], as_complex(pxy)[None])
+    gi, pi = linear_sum_assignment(cost[0])
+    return gi.astype(np.int64), pi.astype(np.int64)
