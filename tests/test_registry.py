@@ -33,10 +33,10 @@ def test_every_config_parses_against_its_command(path):
     assert text.lstrip().startswith("#") and "degusta " in text.split("\n", 3)[0] + text.split("\n", 3)[1], \
         f"{path.name} must open with a comment giving its command"
     raw = read_yaml(path)
-    if "method" in raw:
-        spec = get_method(raw["method"])
-    elif "kind" in raw:
+    if "kind" in raw:  # train configs (they may also name the prompt `method` they learn)
         spec = get_trainer(raw["kind"])
+    elif "method" in raw:
+        spec = get_method(raw["method"])
     else:
         from degusta_learn.evaluate.compare import CompareConfig  # compare configs: a list of methods
 
