@@ -43,3 +43,24 @@ def test_errors_name_the_key(tmp_path, text, sets, message):
     with pytest.raises(DegustaError) as err:
         load_config(Outer, p, sets)
     assert message in str(err.value)
+
+
+def test_atomic_writes_have_normal_permissions_and_leave_nothing_on_error(tmp_path):
+    import os
+
+    from degusta_learn.fileio import atomic_open, atomic_write_text
+
+    atomic_write_text(tmp_path / "a.txt", "hi")
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~_umask()
+    with pytest.raises(RuntimeError), atomic_open(tmp_path / "b.txt") as f:
+        f.write("half")
+        raise RuntimeError("interrupted")
+    assert sorted(os.listdir(tmp_path)) == ["a.txt"]
+
+
+def _umask():
+    import os
+
+    m = os.umask(0)
+    os.umask(m)
+    return m

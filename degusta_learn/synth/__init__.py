@@ -1,1 +1,25 @@
-"""(filled in by its issue)."""
+"""SYNTHETIC datasets: the `naturalistic` and `simulated` generators, latent styles and the oracle.
+
+Usage:
+    degusta data generate naturalistic --out data/naturalistic
+    degusta data generate simulated --out data/simulated
+
+    from degusta_learn.synth import naturalistic, simulated, generate_dataset
+    ds = naturalistic(seed=0)          # 199 participants x 5 arrangements, with ratings (in memory)
+
+Every modelling choice is documented in docs/data.md and in the module docstrings: style.py (what a
+latent style is), templates.py (how styles are drawn), realize.py (style -> arrangements),
+ratings.py (jitter-study ratings), simulated.py (the paper's 72 experiments), oracle.py (the floor).
+"""
+
+from degusta_learn.synth.generate import GENERATORS, generate_dataset
+from degusta_learn.synth.naturalistic import naturalistic, naturalistic_with_styles
+from degusta_learn.synth.realize import expected_arrangement, sample_arrangement
+from degusta_learn.synth.simulated import simulated, simulated_episodes, simulated_with_styles
+from degusta_learn.synth.style import STYLES_FILE, Noise, Setting, Slot, Style, read_styles, write_styles
+
+__all__ = [
+    "GENERATORS", "STYLES_FILE", "Noise", "Setting", "Slot", "Style", "expected_arrangement", "generate_dataset",
+    "naturalistic", "naturalistic_with_styles", "read_styles", "sample_arrangement", "simulated",
+    "simulated_episodes", "simulated_with_styles", "write_styles",
+]

@@ -1,0 +1,72 @@
+"""The oracle (method `oracle`): the participant's own latent style applied to the target table.
+
+It predicts the style's *expected* arrangement (realize.expected_arrangement): the slots the person sets
+at least half the time, their favourite objects, at the style's anchor and spacing on the target table,
+with no noise. Only a synthetic dataset has latent styles (latent_styles.json, written by
+`degusta data generate`), so this is the floor no method can beat on that data: what is left of its
+error is the participant's own noise.
+
+Usage:
+    degusta predict --config configs/oracle.yaml
+    degusta predict --config configs/oracle.yaml --set context=0 --set out=runs/oracle/k0.jsonl
+
+    from degusta_learn.synth.oracle import predict_oracle
+    preds = predict_oracle(ds, styles, episodes)       # styles: {participant: Style}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.methods import MethodSpec, PredictConfig
+from degusta_learn.scene import Dataset, Episode, Prediction
+from degusta_learn.synth.realize import expected_arrangement
+from degusta_learn.synth.style import STYLES_FILE, Style, read_styles
+
+
+@dataclass
+class OracleConfig(PredictConfig):
+    """Predict config of `oracle`."""
+
+    styles: str | None = None
+    """Latent styles file; unset = the dataset's own (meta.json "latent_styles", else latent_styles.json)."""
+
+
+def styles_path(ds: Dataset, override: str | None = None) -> Path:
+    """Where the dataset's latent styles are; DegustaError if there are none."""
+    if override:
+        path = Path(override)
+    elif ds.root is not None:
+        path = ds.root / str(ds.meta.get("latent_styles") or STYLES_FILE)
+    else:
+        raise DegustaError("oracle needs a synthetic dataset with latent styles (this dataset has no folder)")
+    if not path.is_file():
+        raise DegustaError(f"oracle needs a synthetic dataset with latent styles: {path} not found "
+                           "(make one with `degusta data generate`)")
+    return path
+
+
+def predict_oracle(ds: Dataset, styles: dict[str, Style], episodes: list[Episode], method: str = "oracle",
+                   where: str = "latent styles") -> list[Prediction]:
+    """One noiseless expected-arrangement prediction per episode (context is not needed)."""
+    out = []
+    for ep in episodes:
+        style = styles.get(ep.participant)
+        if style is None:
+            raise DegustaError(f"{where}: no latent style for participant {ep.participant!r}")
+        table = ds.tables[ds.arrangement(ep.participant, ep.target).table]
+        placements = expected_arrangement(style, table)
+        out.append(Prediction(ep.id, ep.participant, ep.target, method, placements,
+                              diagnostics={"template": style.template}))
+    return out
+
+
+def run(cfg: OracleConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
+    path = styles_path(ds, cfg.styles)
+    return predict_oracle(ds, read_styles(path), episodes, cfg.method, where=str(path))
+
+
+ORACLE = MethodSpec(OracleConfig, run, "the participant's latent style applied to the target table without "
+                                       "noise (synthetic data only): the floor no method can beat")
