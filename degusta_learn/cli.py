@@ -46,8 +46,7 @@ def cmd_data_episodes(args) -> str:
 def cmd_predict(args) -> str:
     from degusta_learn.methods import run_predict
 
-    overrides = list(args.set) + (["dry_run=true"] if args.dry_run else [])
-    out = run_predict(args.config, overrides)
+    out = run_predict(args.config, args.set, dry_run=args.dry_run)
     return f"wrote predictions to {out}" if out else "dry run: nothing written"
 
 
@@ -70,6 +69,20 @@ def cmd_compare(args) -> str:
 
     out = run_compare(args.config, args.set)
     return f"wrote the comparison report to {out / 'report.md'} (and report.html)"
+
+
+def cmd_render_episode(args) -> str:
+    from degusta_learn.render.commands import render_episode
+
+    files = render_episode(args.dataset, args.participant, args.target, args.context, args.method, args.out,
+                           size=args.size, grid=args.grid, seed=args.seed)
+    return f"wrote {len(files)} files ({', '.join(f.name for f in files)}) to {args.out}"
+
+
+def cmd_render_catalog(args) -> str:
+    from degusta_learn.render.commands import render_catalog
+
+    return f"wrote the catalog contact sheet to {render_catalog(args.dataset, args.out, size=args.size)}"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -119,6 +132,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, type=Path)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.set_defaults(func=cmd_compare)
+
+    render = verbs.add_parser("render", help="lifted images of an episode or of the catalog").add_subparsers(
+        dest="render_verb", required=True)
+    p = render.add_parser("episode", help="an episode's context/target images, object sheets and prompt texts")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--participant", required=True)
+    p.add_argument("--target", type=int, required=True, help="the target trial")
+    p.add_argument("--context", type=int, required=True, help="context length (e.g. 0, 2, 4)")
+    p.add_argument("--method", required=True, choices=["louma", "logma", "mouma", "mogma"])
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--size", type=int, default=448, help="image size in pixels")
+    p.add_argument("--grid", type=int, default=8, help="grid rows = columns for logma/mogma")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (as in degusta data episodes)")
+    p.set_defaults(func=cmd_render_episode)
+    p = render.add_parser("catalog", help="a contact sheet of the whole catalog")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--size", type=int, default=448, help="pixels per object-type sheet")
+    p.set_defaults(func=cmd_render_catalog)
     return parser
 
 

@@ -11,6 +11,7 @@ episode; `run_predict` resolves the episodes, calls it and writes predictions.js
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -79,9 +80,17 @@ METHODS: dict[str, str] = {
     "copy_nearest": "degusta_learn.baselines.heuristic:COPY_NEAREST",
     "consensus": "degusta_learn.baselines.heuristic:CONSENSUS",
     "oracle": "degusta_learn.synth.oracle:ORACLE",
+    "louma": "degusta_learn.prompting.runner:LOUMA",
+    "logma": "degusta_learn.prompting.runner:LOGMA",
+    "mouma": "degusta_learn.prompting.runner:MOUMA",
+    "mogma": "degusta_learn.prompting.runner:MOGMA",
+    "learned": "degusta_learn.baselines.learned:METHOD",
 }
 
-TRAINERS: dict[str, str] = {}
+TRAINERS: dict[str, str] = {
+    "learned": "degusta_learn.baselines.learned:TRAINER",
+    "finetune": "degusta_learn.finetune.train:TRAINER",
+}
 
 
 def _load(registry: dict[str, str], name: Any, what: str, key: str):
@@ -118,12 +127,31 @@ def build_config(path: str | Path | None, overrides: list[str] | None, key: str,
     return spec, from_dict(spec.config_cls, raw, where=where)
 
 
-def run_predict(path: str | Path | None, overrides: list[str] | None = None) -> Path:
-    """`degusta predict`: run the configured method on its episodes and write predictions.jsonl."""
+def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry_run: bool = False,
+                log=print) -> Path | None:
+    """`degusta predict`: run the configured method on its episodes and write predictions.jsonl.
+
+    With `dry_run`, a method whose config has a `dry_run` key (the paid API methods) prints its request
+    count and cost estimate; any other method makes no paid calls, so it only says what it would do.
+    A method returns None for a dry run: nothing is written, None returned.
+    """
+    overrides = list(overrides or [])
+    if dry_run:
+        raw = apply_overrides(read_yaml(path) if path else {}, overrides)
+        spec = get_method(raw.get("method"))
+        if any(f.name == "dry_run" for f in dataclasses.fields(spec.config_cls)):
+            overrides.append("dry_run=true")
+        else:
+            _, cfg = build_config(path, overrides, "method", get_method)
+            n = len(resolve_episodes(cfg, load_dataset(cfg.dataset)))
+            log(f"dry run: method {cfg.method!r} calls no paid API; it would predict {n} episodes into {cfg.out}")
+            return None
     spec, cfg = build_config(path, overrides, "method", get_method)
     ds = load_dataset(cfg.dataset)
     episodes = resolve_episodes(cfg, ds)
     predictions = spec.run(cfg, ds, episodes)
+    if predictions is None:
+        return None
     out = Path(cfg.out)
     write_predictions(out, predictions)
     return out

@@ -1,0 +1,83 @@
+"""Anthropic Claude models via the official `anthropic` client (`pip install degusta_learn[anthropic]`).
+
+The Messages API returns one answer per request, so n samples are n requests (as in the paper's cost
+table). Images go as base64 blocks, interleaved with the text parts. The key comes from the
+environment variable `api_key_env` (default ANTHROPIC_API_KEY); `base_url` points at a proxy if set.
+
+Example:
+    backend = AnthropicBackend.from_config(BackendConfig(name="anthropic", model="claude-3-haiku-20240307"))
+"""
+
+from __future__ import annotations
+
+import base64
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.openai import retry_after
+from degusta_learn.prompting.prompt import ImagePart, Prompt
+
+
+def _import():
+    try:
+        import anthropic
+    except ImportError:
+        raise DegustaError("backend.name: the anthropic backend needs the anthropic client: "
+                           "pip install degusta_learn[anthropic]") from None
+    return anthropic
+
+
+class AnthropicBackend:
+    """Claude via the Messages API; n separate requests."""
+
+    name = "anthropic"
+
+    def __init__(self, model: str, client):
+        self.model, self.client = model, client
+
+    @classmethod
+    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> AnthropicBackend:
+        key = api_key(cfg)
+        anthropic = _import()
+        client = anthropic.Anthropic(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
+        return cls(cfg.model, client)
+
+    @staticmethod
+    def content(prompt: Prompt) -> list[dict]:
+        out = []
+        for part in prompt.parts:
+            if isinstance(part, ImagePart):
+                data = base64.b64encode(part.encode()).decode("ascii")
+                out.append({"type": "image", "source": {"type": "base64", "media_type": part.mime, "data": data}})
+            else:
+                out.append({"type": "text", "text": part})
+        return out
+
+    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
+                 seed: int | None = None) -> list[Completion]:
+        anthropic = _import()
+        if not 0.0 <= temperature <= 1.0:
+            raise BackendError(f"anthropic: temperature must be in [0, 1], got {temperature}", fatal=True)
+        messages = [{"role": "user", "content": self.content(prompt)}]
+        out = []
+        for _ in range(n):
+            try:
+                resp = self.client.messages.create(model=self.model, max_tokens=max_tokens,
+                                                   temperature=temperature, messages=messages)
+            except anthropic.APIStatusError as e:
+                status = e.status_code
+                msg = f"anthropic: HTTP {status} from {self.model}: {str(e)[:300]}"
+                if out:  # keep what we have; the runner asks again for the rest
+                    break
+                raise BackendError(msg, fatal=status in (401, 403, 404),
+                                   retryable=status in (408, 409, 429) or status >= 500,
+                                   retry_after=retry_after(e.response.headers), status=status) from None
+            except (anthropic.APITimeoutError, anthropic.APIConnectionError) as e:
+                if out:
+                    break
+                raise BackendError(f"anthropic: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
+            text = "".join(getattr(b, "text", "") for b in resp.content)
+            usage = getattr(resp, "usage", None)
+            out.append(Completion(text=text, input_tokens=getattr(usage, "input_tokens", None),
+                                  output_tokens=getattr(usage, "output_tokens", None)))
+        return out

@@ -1,0 +1,153 @@
+"""The backend protocol: a VLM that turns a `Prompt` into n sampled completions.
+
+Backends are small classes, one file each, registered by name in `BACKENDS` ("module:Class") and built
+with `make_backend(cfg, grid, catalog)` (each class has `from_config(cfg, grid, catalog)`; only the hf
+backend uses grid + catalog, for constrained decoding). They do no retrying and no caching: the runner
+does both. A failed request raises `BackendError`; `retryable=True` (rate limits, server errors,
+timeouts, dropped connections) makes the runner back off and retry, `fatal=True` (bad key, unknown
+model) stops the run, anything else is recorded as a failure of that episode's samples.
+
+API keys are read only from the environment variable named by `api_key_env`, and `redact` scrubs them
+from every message a backend raises.
+
+Example:
+    backend = make_backend(BackendConfig(name="openai", model="gpt-4o"), grid, ds.catalog)
+    completions = backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import re
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.prompting.prompt import Prompt
+
+BACKENDS: dict[str, str] = {
+    "openai": "degusta_learn.prompting.backends.openai:OpenAIBackend",
+    "anthropic": "degusta_learn.prompting.backends.anthropic:AnthropicBackend",
+    "gemini": "degusta_learn.prompting.backends.gemini:GeminiBackend",
+    "hf": "degusta_learn.prompting.backends.hf:HFBackend",
+    "replay": "degusta_learn.prompting.backends.replay:ReplayBackend",
+}
+DEFAULT_KEY_ENV = {"openai": "OPENAI_API_KEY", "anthropic": "ANTHROPIC_API_KEY", "gemini": "GEMINI_API_KEY"}
+
+
+@dataclass
+class Completion:
+    """One sampled answer; token counts are this sample's share of the request (None if unknown)."""
+
+    text: str
+    input_tokens: int | None = None
+    output_tokens: int | None = None
+
+
+@runtime_checkable
+class Backend(Protocol):
+    name: str
+    model: str
+
+    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
+                 seed: int | None = None) -> list[Completion]:
+        """Return up to n completions of `prompt` (fewer only if the service gave fewer)."""
+        ...
+
+
+@dataclass
+class BackendConfig:
+    """The `backend:` section of a zero-shot predict config."""
+
+    name: str = "openai"
+    """Which backend: openai (any OpenAI-compatible server), anthropic, gemini, hf (local), replay."""
+    model: str = "gpt-4o"
+    """Model name at the service (or a hub id / folder for hf)."""
+    base_url: str | None = None
+    """OpenAI-compatible endpoint, e.g. http://127.0.0.1:8000/v1 for vLLM, :11434/v1 for Ollama."""
+    api_key_env: str | None = None
+    """Environment variable holding the API key (default OPENAI_API_KEY / ANTHROPIC_API_KEY / GEMINI_API_KEY)."""
+    max_tokens: int = 1024
+    """Most tokens per sampled answer."""
+    timeout: float = 120.0
+    """Seconds before a request counts as timed out (then retried)."""
+    detail: str | None = None
+    """openai only: image detail "low" (85 tokens an image), "high" or "auto" (unset: the server default)."""
+    adapter: str | None = None
+    """hf only: a peft LoRA adapter folder (from `degusta train`)."""
+    constrained: bool = False
+    """hf only: constrain decoding to the answer grammar."""
+    device: str = "auto"
+    """hf only: cpu, cuda, auto."""
+    dtype: str = "auto"
+    """hf only: float32, bfloat16, float16, auto."""
+    image_size: int | None = None
+    """hf only: the processor's image size budget (unset: the model's default)."""
+    path: str | None = None
+    """replay only: the JSONL file of recorded answers."""
+
+    def __post_init__(self):
+        if self.name not in BACKENDS:
+            raise DegustaError(f"backend.name: unknown backend {self.name!r} (known: {', '.join(BACKENDS)})")
+        if self.max_tokens < 1:
+            raise DegustaError(f"backend.max_tokens: expected >= 1, got {self.max_tokens}")
+        if self.timeout <= 0:
+            raise DegustaError(f"backend.timeout: expected > 0, got {self.timeout}")
+        if self.detail not in (None, "low", "high", "auto"):
+            raise DegustaError(f"backend.detail: expected low, high or auto, got {self.detail!r}")
+
+    @property
+    def key_env(self) -> str | None:
+        """The environment variable the key is read from (None: this backend needs no key)."""
+        return self.api_key_env or DEFAULT_KEY_ENV.get(self.name)
+
+
+class BackendError(Exception):
+    """A request that failed; see the module docstring for what `retryable` and `fatal` mean."""
+
+    def __init__(self, message: str, retryable: bool = False, retry_after: float | None = None,
+                 fatal: bool = False, status: int | None = None):
+        super().__init__(redact(message))
+        self.retryable, self.retry_after, self.fatal, self.status = retryable, retry_after, fatal, status
+
+
+_KEY_PATTERN = re.compile(r"\b(sk-[A-Za-z0-9_\-*]{4,}|AIza[A-Za-z0-9_\-]{10,})")
+
+
+def redact(text: str) -> str:
+    """Remove API keys (the values of the known key variables, and sk-... / AIza... tokens) from text."""
+    for env in {*DEFAULT_KEY_ENV.values(), *_extra_key_envs}:
+        value = os.environ.get(env)
+        if value and len(value) >= 4:
+            text = text.replace(value, "***")
+    return _KEY_PATTERN.sub("***", text)
+
+
+_extra_key_envs: set[str] = set()
+
+
+def api_key(cfg: BackendConfig, required: bool = True) -> str | None:
+    """The API key from the environment variable `cfg.key_env` (never from a config file)."""
+    env = cfg.key_env
+    if env:
+        _extra_key_envs.add(env)
+    value = os.environ.get(env) if env else None
+    if not value and required:
+        raise DegustaError(f"backend.api_key_env: environment variable {env} is not set "
+                           f"(export {env}=... ; keys are never read from config files)")
+    return value or None
+
+
+def make_backend(cfg: BackendConfig, grid=None, catalog=None) -> Backend:
+    """Build the backend named by `cfg.name` (imports its module on first use)."""
+    if cfg.name not in BACKENDS:
+        raise DegustaError(f"backend.name: unknown backend {cfg.name!r} (known: {', '.join(BACKENDS)})")
+    module, attr = BACKENDS[cfg.name].split(":")
+    try:
+        cls = getattr(importlib.import_module(module), attr)
+    except ModuleNotFoundError as e:
+        if e.name and e.name.startswith("degusta_learn"):
+            raise DegustaError(f"backend.name: backend {cfg.name!r} is not available ({e.name} missing)") from None
+        raise
+    return cls.from_config(cfg, grid, catalog)

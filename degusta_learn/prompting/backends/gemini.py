@@ -1,0 +1,73 @@
+"""Google Gemini models via the official `google-genai` client (`pip install degusta_learn[gemini]`).
+
+The client is imported lazily, so the rest of the toolkit works without it; n samples are n requests
+(as in the paper). The key comes from the environment variable `api_key_env` (default GEMINI_API_KEY).
+
+Example:
+    backend = GeminiBackend.from_config(BackendConfig(name="gemini", model="gemini-1.5-pro"))
+"""
+
+from __future__ import annotations
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.prompt import ImagePart, Prompt
+
+
+def _import():
+    try:
+        from google import genai
+        from google.genai import errors, types
+    except ImportError:
+        raise DegustaError("backend.name: the gemini backend needs Google's google-genai client: "
+                           "pip install degusta_learn[gemini]") from None
+    return genai, types, errors
+
+
+def _transient(e: Exception) -> bool:
+    names = [c.__name__ for c in type(e).__mro__]
+    return any(k in n for n in names for k in ("Timeout", "TransportError", "ConnectError", "NetworkError"))
+
+
+class GeminiBackend:
+    """Gemini via `client.models.generate_content`; n separate requests."""
+
+    name = "gemini"
+
+    def __init__(self, model: str, client):
+        self.model, self.client = model, client
+
+    @classmethod
+    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> GeminiBackend:
+        key = api_key(cfg)
+        genai, types, _ = _import()
+        options = types.HttpOptions(base_url=cfg.base_url, timeout=int(cfg.timeout * 1000)) if cfg.base_url \
+            else types.HttpOptions(timeout=int(cfg.timeout * 1000))
+        return cls(cfg.model, genai.Client(api_key=key, http_options=options))
+
+    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
+                 seed: int | None = None) -> list[Completion]:
+        _, types, errors = _import()
+        contents = [types.Part.from_bytes(data=p.encode(), mime_type=p.mime) if isinstance(p, ImagePart)
+                    else types.Part.from_text(text=p) for p in prompt.parts]
+        config = types.GenerateContentConfig(temperature=temperature, max_output_tokens=max_tokens, seed=seed)
+        out = []
+        for _ in range(n):
+            try:
+                resp = self.client.models.generate_content(model=self.model, contents=contents, config=config)
+            except errors.APIError as e:
+                if out:
+                    break
+                code = int(getattr(e, "code", 0) or 0)
+                raise BackendError(f"gemini: HTTP {code} from {self.model}: {str(e)[:300]}", status=code,
+                                   fatal=code in (401, 403, 404), retryable=code in (408, 429) or code >= 500) from None
+            except Exception as e:  # timeouts and dropped connections of google-genai's HTTP library
+                if not _transient(e):
+                    raise
+                if out:
+                    break
+                raise BackendError(f"gemini: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
+            usage = getattr(resp, "usage_metadata", None)
+            out.append(Completion(text=resp.text or "", input_tokens=getattr(usage, "prompt_token_count", None),
+                                  output_tokens=getattr(usage, "candidates_token_count", None)))
+        return out

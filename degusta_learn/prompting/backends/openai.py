@@ -1,0 +1,136 @@
+"""Any OpenAI-compatible chat-completions endpoint via the official `openai` client.
+
+GPT-4o by default; with `base_url` also vLLM (`vllm serve Qwen/Qwen2.5-VL-7B-Instruct`), Ollama
+(http://127.0.0.1:11434/v1) or LM Studio, so open models served locally work the same way. The prompt
+goes as one user message whose content interleaves text parts and images (base64 data URLs); the n
+samples are asked for in one request (`n`), and a server that returns fewer choices (Ollama ignores
+`n`) is asked again by the runner for the rest.
+
+The key comes from the environment variable `api_key_env` (default OPENAI_API_KEY, which is sent to
+api.openai.com only). Any other `base_url` gets a key only when `api_key_env` names its variable, so a
+local server runs without one and your OpenAI key never reaches a third-party endpoint.
+
+Example:
+    backend = OpenAIBackend.from_config(BackendConfig(model="gpt-4o"))
+    backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
+"""
+
+from __future__ import annotations
+
+import email.utils
+import time
+from urllib.parse import urlparse
+
+from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.prompt import ImagePart, Prompt
+
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1", "0.0.0.0")
+
+
+def is_local(base_url: str | None) -> bool:
+    return bool(base_url) and (urlparse(base_url).hostname or "") in LOCAL_HOSTS
+
+
+def retry_after(headers) -> float | None:
+    """Seconds from a Retry-After (seconds or HTTP date) or retry-after-ms header, if any."""
+    if headers is None:
+        return None
+    ms = headers.get("retry-after-ms")
+    if ms:
+        try:
+            return float(ms) / 1000.0
+        except ValueError:
+            pass
+    value = headers.get("retry-after")
+    if not value:
+        return None
+    try:
+        return max(0.0, float(value))
+    except ValueError:
+        parsed = email.utils.parsedate_to_datetime(value) if value else None
+        return max(0.0, parsed.timestamp() - time.time()) if parsed else None
+
+
+def split_usage(total: int | None, k: int) -> list[int | None]:
+    """Spread a request's token count over its k samples (sums to the total)."""
+    if total is None or k == 0:
+        return [None] * k
+    return [total // k + (1 if i < total % k else 0) for i in range(k)]
+
+
+class OpenAIBackend:
+    """Chat completions with images as data URLs; `n` samples per request."""
+
+    name = "openai"
+
+    def __init__(self, model: str, client, detail: str | None = None):
+        self.model, self.client, self.detail = model, client, detail
+        self.max_tokens_key = "max_tokens"
+
+    @classmethod
+    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> OpenAIBackend:
+        import openai
+
+        # The default OPENAI_API_KEY is only ever sent to OpenAI itself; another server (vLLM, Ollama, a
+        # proxy) gets a key only from a variable named explicitly in backend.api_key_env.
+        official = cfg.base_url is None or (urlparse(cfg.base_url).hostname or "").endswith("api.openai.com")
+        key = (api_key(cfg) if cfg.api_key_env or official else None) or "not-needed"
+        client = openai.OpenAI(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
+        return cls(cfg.model, client, cfg.detail)
+
+    def messages(self, prompt: Prompt) -> list[dict]:
+        content = []
+        for part in prompt.parts:
+            if isinstance(part, ImagePart):
+                image = {"url": part.data_url()}
+                if self.detail:
+                    image["detail"] = self.detail
+                content.append({"type": "image_url", "image_url": image})
+            else:
+                content.append({"type": "text", "text": part})
+        return [{"role": "user", "content": content}]
+
+    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
+                 seed: int | None = None) -> list[Completion]:
+        import openai
+
+        kwargs = {"model": self.model, "messages": self.messages(prompt), "n": n, "temperature": temperature,
+                  self.max_tokens_key: max_tokens}
+        if seed is not None:
+            kwargs["seed"] = seed
+        try:
+            try:
+                resp = self.client.chat.completions.create(**kwargs)
+            except openai.BadRequestError as e:  # newer OpenAI models only take max_completion_tokens
+                if self.max_tokens_key != "max_tokens" or "max_completion_tokens" not in str(e):
+                    raise
+                self.max_tokens_key = "max_completion_tokens"
+                kwargs["max_completion_tokens"] = kwargs.pop("max_tokens")
+                resp = self.client.chat.completions.create(**kwargs)
+        except openai.APIStatusError as e:
+            status = e.status_code
+            msg = f"openai: HTTP {status} from {self.model}: {_message(e)}"
+            if status in (401, 403):
+                raise BackendError(msg + " (check the API key variable)", fatal=True, status=status) from None
+            if status == 404:
+                raise BackendError(msg + " (unknown model or endpoint?)", fatal=True, status=status) from None
+            raise BackendError(msg, retryable=status in (408, 409, 429) or status >= 500,
+                               retry_after=retry_after(e.response.headers), status=status) from None
+        except openai.APITimeoutError:
+            raise BackendError(f"openai: request to {self.model} timed out", retryable=True) from None
+        except openai.APIConnectionError as e:
+            raise BackendError(f"openai: cannot reach the server ({_message(e)})", retryable=True) from None
+        except openai.OpenAIError as e:
+            raise BackendError(f"openai: {_message(e)}") from None
+        choices = getattr(resp, "choices", None) or []
+        usage = getattr(resp, "usage", None)
+        ins = split_usage(getattr(usage, "prompt_tokens", None), len(choices))
+        outs = split_usage(getattr(usage, "completion_tokens", None), len(choices))
+        return [Completion(text=(c.message.content or "") if c.message else "", input_tokens=i, output_tokens=o)
+                for c, i, o in zip(choices, ins, outs)]
+
+
+def _message(e: Exception) -> str:
+    text = str(getattr(e, "message", None) or e)
+    return text if len(text) < 300 else text[:300] + "..."
+

@@ -1,0 +1,67 @@
+"""Replay recorded answers from a file: reproduce a published zero-shot run without calling any API.
+
+`backend.path` is either
+- a JSONL file with one sampled answer a line: `{"episode": "p001/t2/k4", "sample": 0, "text": "[...]"}`, or
+- a predictions.jsonl written by a zero-shot run (its `diagnostics.responses` hold the raw answers).
+
+Answers are looked up by the prompt's episode id and sample index; a missing answer counts as a failed
+sample. Replay answers are not cached and cost nothing.
+
+Example config:
+    backend: {name: replay, path: runs/mogma_gpt4o/predictions.jsonl}
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import read_jsonl
+from degusta_learn.prompting.backends.base import BackendConfig, Completion
+from degusta_learn.prompting.prompt import Prompt
+
+
+def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
+    """{episode id: {sample index: answer text}} from either file format above."""
+    out: dict[str, dict[int, str]] = {}
+    for lineno, row in read_jsonl(path):
+        where = f"{path}:{lineno}"
+        if not isinstance(row, dict) or not isinstance(row.get("episode"), str):
+            raise DegustaError(f"{where}: episode: expected an object with a string 'episode'")
+        answers = out.setdefault(row["episode"], {})
+        if "text" in row:
+            sample = row.get("sample", len(answers))
+            if not isinstance(sample, int) or isinstance(sample, bool) or sample < 0:
+                raise DegustaError(f"{where}: sample: expected an integer >= 0, got {sample!r}")
+            if not isinstance(row["text"], str):
+                raise DegustaError(f"{where}: text: expected a string")
+            answers[sample] = row["text"]
+        else:
+            responses = (row.get("diagnostics") or {}).get("responses")
+            if not isinstance(responses, list):
+                raise DegustaError(f"{where}: expected 'text' (one answer) or diagnostics.responses (a list)")
+            for i, text in enumerate(responses):
+                if isinstance(text, str):
+                    answers[i] = text
+    return out
+
+
+class ReplayBackend:
+    """Answers from a file; `complete(prompt, n)` returns the episode's recorded samples 0..n-1."""
+
+    name = "replay"
+    cacheable = False  # nothing to save: the file is the cache
+
+    def __init__(self, answers: dict[str, dict[int, str]], model: str = "replay"):
+        self.answers, self.model = answers, model
+
+    @classmethod
+    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> ReplayBackend:
+        if not cfg.path:
+            raise DegustaError("backend.path: the replay backend needs the file of recorded answers")
+        return cls(read_replay(cfg.path), model=cfg.model)
+
+    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
+                 seed: int | None = None) -> list[Completion]:
+        recorded = self.answers.get(prompt.episode or "", {})
+        return [Completion(text=recorded[i], input_tokens=0, output_tokens=0) for i in range(n) if i in recorded]

@@ -1,0 +1,78 @@
+"""`--dry-run`: how many requests a zero-shot run makes and what it will cost, calling nothing.
+
+Prompts are built exactly as in the real run (so image sizes and text lengths are the real ones) and the
+response cache is opened read-only (never created), so samples already answered are not counted.
+Output tokens per sample are estimated from the canonical answers of the dataset's own arrangements
+(`est_output_tokens` overrides that).
+
+Example:
+    degusta predict --config configs/zeroshot_mogma_gpt4o.yaml --dry-run
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from degusta_learn.prompting.answers import answer_items, format_answer
+from degusta_learn.prompting.cache import ResponseCache
+from degusta_learn.prompting.costs import CHARS_PER_TOKEN, cost, prompt_tokens
+from degusta_learn.scene import Dataset
+
+PAPER_ANCHOR = ("paper anchor, GPT-4o, one 4-context experiment, n=5: 8,035 in + 6,250 out = 14,285 tokens, "
+                "USD 0.15 at 2024 prices")
+
+
+def output_tokens_per_sample(ds: Dataset, kind: str, grid, max_arrangements: int = 50) -> int:
+    """Tokens of a canonical answer for an average arrangement of `ds` (CHARS_PER_TOKEN) + 10%."""
+    arrs = ds.arrangements[:max_arrangements]
+    if not arrs:
+        return 200
+    chars = [len(format_answer(answer_items(list(a.placements), ds.catalog, kind, grid), kind)) for a in arrs]
+    return math.ceil(1.1 * sum(chars) / len(chars) / CHARS_PER_TOKEN) + 5
+
+
+def estimate_run(run, episodes: list) -> dict[str, Any]:
+    """Requests, samples (new and cached), tokens and USD of running `run` (a ZeroShotRun) on `episodes`."""
+    cfg = run.cfg
+    cache = ResponseCache(run.cache_path, readonly=True) if run.cache_path else None
+    est = {"episodes": len(episodes), "episodes_to_run": 0, "samples": 0, "cached": 0, "requests": 0, "input_tokens": 0,
+           "output_tokens": 0, "output_tokens_per_sample": run.est_out}
+    per_prompt = []
+    for ep in episodes:
+        prompt, keys = run.prompt(ep)
+        hits = cache.get_many(keys) if cache else {}
+        missing = len(keys) - len(hits)
+        tokens = prompt_tokens(prompt, cfg.backend.name, cfg.backend.detail)
+        per_prompt.append(tokens)
+        requests = missing if run.per_sample else int(missing > 0)
+        est["episodes_to_run"] += int(missing > 0)
+        est["samples"] += missing
+        est["cached"] += len(hits)
+        est["requests"] += requests
+        est["input_tokens"] += requests * tokens
+        est["output_tokens"] += missing * run.est_out
+    if cache:
+        cache.close()
+    est["input_tokens_per_request"] = round(sum(per_prompt) / max(1, len(per_prompt)))
+    est["cost_usd"] = cost(run.price, est["input_tokens"], est["output_tokens"])
+    est["price_usd_per_1m"] = list(run.price) if run.price else None
+    return est
+
+
+def print_estimate(cfg, est: dict[str, Any]) -> None:
+    """Print the dry-run summary (stdout)."""
+    todo = max(1, est["episodes_to_run"])
+    per_ep = est["cost_usd"] / todo
+    tokens_per_ep = (est["input_tokens"] + est["output_tokens"]) / todo
+    pr = est["price_usd_per_1m"]
+    priced = f"at USD {pr[0]:g} / {pr[1]:g} per 1M input / output tokens" if pr else \
+        "(no price known for this model: set prices.<model> to estimate dollars)"
+    print(f"dry run: {cfg.method} with {cfg.backend.name} {cfg.backend.model}, {est['episodes']} episodes x n={cfg.n} "
+          f"({est['episodes_to_run']} still to run)")
+    print(f"  requests: {est['requests']} for {est['samples']} samples ({est['cached']} samples already cached)")
+    print(f"  estimated tokens: {est['input_tokens']:,} input ({est['input_tokens_per_request']:,} a request) + "
+          f"{est['output_tokens']:,} output ({est['output_tokens_per_sample']} a sample) "
+          f"= {tokens_per_ep:,.0f} an episode")
+    print(f"  estimated cost: USD {est['cost_usd']:.4f} {priced}; about USD {per_ep:.4f} an episode")
+    print(f"  ({PAPER_ANCHOR})")
