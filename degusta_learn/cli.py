@@ -4,7 +4,8 @@ Usage (CPU smoke run, a minute):
     degusta data generate naturalistic --out data/naturalistic
     degusta data episodes data/naturalistic --context 4 --split test --out data/naturalistic/episodes_k4.jsonl
     degusta predict --config configs/baseline_copy_nearest.yaml
-    degusta evaluate --dataset data/naturalistic --predictions runs/copy_nearest/predictions.jsonl --out runs/eval
+    degusta evaluate --dataset data/naturalistic --predictions runs/baseline_copy_nearest/predictions.jsonl --out runs/eval
+    degusta quickstart                                   # everything above and more, one report
 
 Every user mistake raises DegustaError: printed on one line as "degusta: error: ...", exit status 2.
 """
@@ -85,6 +86,13 @@ def cmd_render_catalog(args) -> str:
     return f"wrote the catalog contact sheet to {render_catalog(args.dataset, args.out, size=args.size)}"
 
 
+def cmd_quickstart(args) -> str:
+    from degusta_learn.evaluate.quickstart import run_quickstart
+
+    report = run_quickstart(args.out, small=args.small, with_api=args.with_api)
+    return f"quickstart finished: open {report / 'report.md'} (or {report / 'report.html'} in a browser)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="degusta", description="Personalized table setting: data, "
                                      "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.")
@@ -151,6 +159,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--size", type=int, default=448, help="pixels per object-type sheet")
     p.set_defaults(func=cmd_render_catalog)
+
+    p = verbs.add_parser("quickstart", help="the main job on the embedded default (CPU, about 10 minutes)")
+    p.add_argument("--out", type=Path, default=Path("quickstart"), help="where everything is written")
+    p.add_argument("--small", action="store_true", help="a reduced size that finishes in a few minutes (CI)")
+    p.add_argument("--with-api", action="store_true",
+                   help="add a zero-shot GPT-4o MOGMA row (needs OPENAI_API_KEY; prints the cost first)")
+    p.set_defaults(func=cmd_quickstart)
     return parser
 
 

@@ -23,13 +23,18 @@ def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out:
     """Score prediction files against a dataset and write the report folder `out`.
 
     With `episodes`, every prediction must belong to that set and every episode must be predicted.
-    Several files may hold different methods; the same method in two files is refused.
+    Several files may hold different methods; a method name found in two files (say, `mogma` from two
+    backends) is labelled with each file's folder name, e.g. `mogma (hf_tiny_zeroshot)`.
     """
     ds = load_dataset(dataset)
     ep_map = {e.id: e for e in read_episodes(episodes, ds)} if episodes else None
+    loaded = [(Path(path), read_predictions(path, ds.catalog, ep_map)) for path in prediction_files]
+    names = [m for _, preds in loaded for m in {p.method for p in preds}]
     rows, seen_methods, notes = [], {}, []
-    for path in prediction_files:
-        preds = read_predictions(path, ds.catalog, ep_map)
+    for path, preds in loaded:
+        for p in preds:
+            if names.count(p.method) > 1:
+                p.method = f"{p.method} ({path.parent.name or path.stem})"
         for method in {p.method for p in preds}:
             if method in seen_methods:
                 raise DegustaError(f"{path}: method {method!r} is also in {seen_methods[method]}")

@@ -1,0 +1,91 @@
+"""Batching with correct labels: only the answer and its end-of-turn token are supervised.
+
+For each example the prompt (user turn + generation prompt, with images) goes through the model's
+processor exactly as at generation time, and the completion (`ChatFormat.completion_text`: template
+lead + answer + end-of-turn token) is tokenized separately and appended, so training sees the very
+prompt tokens generation will see. Labels are -100 on every prompt, image and padding token; labels
+are NOT shifted (the loss shifts once). Nothing is ever truncated: an example longer than the budget
+raises a DegustaError that names `data.max_length` and the image-token share.
+
+Example:
+    collate = Collator(processor, fmt, max_length=2048, image_token_id=model.config.image_token_id)
+    batch = collate([examples[0], examples[1]])   # input_ids, attention_mask, labels, pixel_values, ...
+"""
+
+from __future__ import annotations
+
+import torch
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.inputs import ChatFormat, prompt_messages
+
+IGNORE = -100
+
+
+class Collator:
+    """Examples -> a padded batch with labels (see the module docstring)."""
+
+    def __init__(self, processor, fmt: ChatFormat, max_length: int, image_token_id: int | None,
+                 key: str = "data.max_length"):
+        self.processor, self.fmt, self.max_length = processor, fmt, max_length
+        self.image_token_id, self.key = image_token_id, key
+        self.pad_id = processor.tokenizer.pad_token_id
+        if self.pad_id is None:
+            self.pad_id = fmt.end_id
+
+    def __call__(self, examples) -> dict:
+        tok = self.processor.tokenizer
+        texts, images = [], []
+        for ex in examples:
+            messages, ims = prompt_messages(ex.prompt)
+            texts.append(self.fmt.prompt_text(messages))
+            images.append(ims)
+        has_images = any(images)
+        if has_images and not all(images):
+            raise DegustaError("data.include: some examples of a batch have images and some none; "
+                               "include at least one image group for every example")
+        tok.padding_side = "right"
+        enc = self.processor(text=texts, images=images if has_images else None, padding=True,
+                             add_special_tokens=False, return_tensors="pt")
+        completions = [tok(self.fmt.completion_text(ex.answer), add_special_tokens=False)["input_ids"]
+                       for ex in examples]
+        prompt_lens = enc["attention_mask"].sum(dim=1).tolist()
+        lengths = [p + len(c) for p, c in zip(prompt_lens, completions)]
+        for ex, p, c, n in zip(examples, prompt_lens, completions, lengths):
+            if n > self.max_length:
+                raise DegustaError(self._budget_message(ex, enc, p, len(c), n))
+        T = max(lengths)
+        B = len(examples)
+        seq_shape = tuple(enc["input_ids"].shape)
+        out = {k: v for k, v in enc.items() if not (torch.is_tensor(v) and tuple(v.shape) == seq_shape)}
+        input_ids = torch.full((B, T), self.pad_id, dtype=torch.long)
+        attention = torch.zeros((B, T), dtype=torch.long)
+        labels = torch.full((B, T), IGNORE, dtype=torch.long)
+        per_token = {k: torch.zeros((B, T), dtype=v.dtype) for k, v in enc.items()
+                     if k not in ("input_ids", "attention_mask") and torch.is_tensor(v) and tuple(v.shape) == seq_shape}
+        for b, (p, c) in enumerate(zip(prompt_lens, completions)):
+            real = enc["attention_mask"][b].bool()
+            input_ids[b, :p] = enc["input_ids"][b][real]
+            input_ids[b, p:p + len(c)] = torch.tensor(c, dtype=torch.long)
+            attention[b, :p + len(c)] = 1
+            labels[b, p:p + len(c)] = torch.tensor(c, dtype=torch.long)
+            for k, v in per_token.items():
+                v[b, :p] = enc[k][b][real]
+        out.update(input_ids=input_ids, attention_mask=attention, labels=labels, **per_token)
+        return out
+
+    def _budget_message(self, ex, enc, prompt_len: int, answer_len: int, n: int) -> str:
+        n_img = 0
+        if self.image_token_id is not None:
+            n_img = int((enc["input_ids"] == self.image_token_id).sum(dim=1).max())
+        return (f"{self.key}: episode {ex.episode} needs {n} tokens ({n_img} image tokens, "
+                f"{prompt_len - n_img} other prompt tokens, {answer_len} answer tokens) but the budget is "
+                f"{self.max_length}; nothing is truncated (cutting image tokens breaks the model): lower "
+                "model.image_size, compose images (data.compose), drop image groups (data.include) or "
+                f"raise {self.key} up to the model's context")
+
+
+def supervised_text(tokenizer, batch: dict, row: int) -> str:
+    """Decode the supervised tokens of one row (what the loss trains on)."""
+    labels = batch["labels"][row]
+    return tokenizer.decode(labels[labels != IGNORE].tolist(), skip_special_tokens=False)

@@ -1,0 +1,169 @@
+"""The answer grammar as a character automaton: which text may come next in a valid answer.
+
+It accepts exactly the canonical text of `prompting.format_answer` (optionally after a little leading
+whitespace), restricted to what can be right:
+
+    grid:      [{'type': 'plate', 'id': 17, 'position': ['D4', 'D5'], 'cardinal_direction': 'N'}, ...]
+    unmarked:  [{'type': 'plate', 'id': 17, 'position': [0.52, 0.6], 'rotation': 90}, ...]
+
+types from the catalog, ids of *that* type not placed yet (an object goes down once), cells of the grid
+(each at most once per object), the eight
+directions, coordinates in [0, 1] with up to 3 decimals, whole-degree rotations 0-359. Every accepted
+text parses with `parse_answer`. Bounds (`max_items`, `max_cells`) and `closing=True` (used when the
+token budget runs low) only allow the way to the end, so a constrained generation always finishes.
+
+A state is a plain tuple (hashable: `constrain.py` caches the allowed tokens per state).
+
+Example:
+    g = AnswerGrammar("grid", catalog, grid)
+    s = g.feed(g.start(), "[{'type': 'cup', 'id': 3")    # None if the text cannot start an answer
+    g.is_complete(s)                                     # False
+"""
+
+from __future__ import annotations
+
+import re
+
+from degusta_learn.errors import DegustaError
+
+_COORD_PREFIX = re.compile(r"0(\.\d{0,3})?|1(\.0{0,3})?")
+_COORD = re.compile(r"0|1|0\.\d{1,3}|1\.0{1,3}")
+_ROT = re.compile(r"0|[1-9]\d?|[12]\d\d|3[0-5]\d")
+
+# An item is a sequence of literal text and slots; "cells" is the ['C1', 'C2', ...] loop of a grid item.
+_ITEMS = {
+    "grid": (("lit", "{'type': '"), ("slot", "type"), ("lit", "', 'id': "), ("slot", "id"),
+             ("lit", ", 'position': ['"), ("cells", "cell"), ("lit", "], 'cardinal_direction': '"),
+             ("slot", "dir"), ("lit", "'}")),
+    "unmarked": (("lit", "{'type': '"), ("slot", "type"), ("lit", "', 'id': "), ("slot", "id"),
+                 ("lit", ", 'position': ["), ("slot", "coord"), ("lit", ", "), ("slot", "coord"),
+                 ("lit", "], 'rotation': "), ("slot", "rot"), ("lit", "}")),
+}
+_WS = " \n"
+_MAX_WS = 2
+
+# state = (phase, part, off, buf, type, cells, ids): cells of the current item, ids of all items so far
+#   phase "pre": leading whitespace (off = count) before "["; "item": inside item part `part`
+#   (literal offset `off`, slot text `buf`); "sep": inside ", " between items (off); "next": after an
+#   item's "}" (expects "," or "]"); "done": after the closing "]".
+#   In a "cells" part, off is 0 in a cell id, 1 after its closing quote, 2/3 inside the ", '" separator.
+
+
+class AnswerGrammar:
+    """Character-level automaton of valid answers for one catalog and grid."""
+
+    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int = 16):
+        if kind not in _ITEMS:
+            raise DegustaError(f"answer kind: expected one of {list(_ITEMS)}, got {kind!r}")
+        self.kind, self.parts = kind, _ITEMS[kind]
+        self.max_items, self.max_cells = min(max_items, len(catalog)), max_cells
+        self.types = list(catalog.types)
+        self.ids = {t: [str(o.id) for o in catalog.of_type(t)] for t in self.types}
+        if kind == "grid":
+            from degusta_learn.render.grid import DIRECTIONS, Grid
+
+            self.cells = list((grid or Grid()).cells)
+            self.directions = list(DIRECTIONS)
+        self._prefixes: dict = {}
+
+    # ------------------------------------------------------------------ slots
+    def _options(self, name: str, type_: str | None) -> list[str]:
+        return {"type": lambda: self.types, "id": lambda: self.ids.get(type_, []),
+                "cell": lambda: self.cells, "dir": lambda: self.directions}[name]()
+
+    def _prefix_ok(self, name: str, buf: str, type_: str | None, exclude=()) -> bool:
+        if name == "coord":
+            return buf == "" or _COORD_PREFIX.fullmatch(buf) is not None
+        if name == "rot":
+            return buf == "" or _ROT.fullmatch(buf) is not None
+        key = (name, type_)
+        if key not in self._prefixes:
+            self._prefixes[key] = {o[:i] for o in self._options(name, type_) for i in range(len(o) + 1)}
+        if buf not in self._prefixes[key]:
+            return False
+        return not exclude or any(o.startswith(buf) and o not in exclude for o in self._options(name, type_))
+
+    def _complete(self, name: str, buf: str, type_: str | None, exclude=()) -> bool:
+        if name == "coord":
+            return _COORD.fullmatch(buf) is not None
+        if name == "rot":
+            return _ROT.fullmatch(buf) is not None
+        return buf in self._options(name, type_) and buf not in exclude
+
+    # ------------------------------------------------------------------ automaton
+    def start(self) -> tuple:
+        return ("pre", 0, 0, "", None, (), ())
+
+    def is_complete(self, state) -> bool:
+        return state is not None and state[0] == "done"
+
+    def feed(self, state, text: str, closing: bool = False):
+        """The state after reading `text` from `state`, or None if the text leaves the grammar."""
+        for ch in text:
+            state = self.step(state, ch, closing)
+            if state is None:
+                return None
+        return state
+
+    def step(self, state, ch: str, closing: bool = False):
+        phase, part, off, buf, type_, cells, n = state  # n: ids placed so far (an object goes down once)
+        if phase == "pre":
+            if ch == "[":
+                return ("item", 0, 0, "", None, (), n)
+            return ("pre", 0, off + 1, "", None, (), n) if ch in _WS and off < _MAX_WS else None
+        if phase == "next":
+            if ch == "]":
+                return ("done", 0, 0, "", None, (), n)
+            if ch == "," and not closing and len(n) < self.max_items:
+                return ("sep", 0, 1, "", None, (), n)
+            return None
+        if phase == "sep":  # ", " then the item's "{"
+            return ("sep", 0, 2, "", None, (), n) if ch == " " and off == 1 else \
+                (self._enter(0, ch, n) if off == 2 else None)
+        if phase == "done":
+            return None
+        kind, value = self.parts[part]
+        if kind == "lit":
+            if ch != value[off]:
+                return None
+            if off + 1 < len(value):
+                return ("item", part, off + 1, "", type_, cells, n)
+            if part + 1 == len(self.parts):
+                return ("next", 0, 0, "", None, (), n)
+            return ("item", part + 1, 0, "", type_, cells, n)
+        if kind == "slot":
+            exclude = n if value == "id" else self._exhausted(n) if value == "type" else ()
+            if self._prefix_ok(value, buf + ch, type_, exclude):
+                return ("item", part, 0, buf + ch, type_, cells, n)
+            if ch == self.parts[part + 1][1][0] and self._complete(value, buf, type_, exclude):
+                type_ = buf if value == "type" else type_
+                n = n + (buf,) if value == "id" else n
+                return self.step(("item", part + 1, 0, "", type_, cells, n), ch, closing)
+            return None
+        # cells loop: 'C1', 'C2'  (the opening quote of the first cell is in the literal before)
+        if off == 0:
+            if self._prefix_ok("cell", buf + ch, None, cells):
+                return ("item", part, 0, buf + ch, type_, cells, n)
+            if ch == "'" and self._complete("cell", buf, None, cells):
+                return ("item", part, 1, "", type_, cells + (buf,), n)
+            return None
+        if off == 1:
+            if ch == "," and not closing and len(cells) < min(self.max_cells, len(self.cells)):
+                return ("item", part, 2, "", type_, cells, n)
+            return self.step(("item", part + 1, 0, "", type_, cells, n), ch, closing)
+        if off == 2:
+            return ("item", part, 3, "", type_, cells, n) if ch == " " else None
+        return ("item", part, 0, "", type_, cells, n) if ch == "'" else None
+
+    def _exhausted(self, used: tuple) -> tuple:
+        """Types all of whose objects are already placed (choosing one would be a dead end)."""
+        return tuple(t for t in self.types if all(i in used for i in self.ids[t])) if used else ()
+
+    def _enter(self, part: int, ch: str, n: tuple):
+        return self.step(("item", part, 0, "", None, (), n), ch)
+
+    @property
+    def max_chars_to_close(self) -> int:
+        """An upper bound on the characters needed to finish an answer from any state with closing=True."""
+        lits = sum(len(v) for k, v in self.parts if k == "lit")
+        return lits + 4 * 8 + 8  # slot values are at most 5 chars; a cell id 3; the closing "]" and slack

@@ -1,0 +1,142 @@
+"""Turn a `Prompt` (+ answer) into model inputs the way the model's own chat template wants them.
+
+One `ChatFormat` per processor, probed once from the chat template:
+- the prompt is the user turn rendered with `add_generation_prompt=True` and tokenized with
+  `add_special_tokens=False` (templates already hold the BOS: no double BOS);
+- the supervised completion is what the template puts after the generation prompt, cut right after
+  the end-of-turn token: e.g. `" [...]<end_of_utterance>"` (SmolVLM) or `"[...]<|im_end|>"` (Qwen2-VL);
+- the stop ids of generation always include that end-of-turn token (so generation stops where
+  training taught it to).
+
+`set_image_budget` makes the image cost explicit: one tile per image for Idefics3/SmolVLM (no 17-tile
+blow-ups), fixed pixels for Qwen2-VL; `tokens_per_image` measures it with the real processor.
+
+Example:
+    fmt = ChatFormat(processor, model.generation_config)
+    inputs = encode_prompt(processor, fmt, prompt)       # BatchFeature, 1 row
+"""
+
+from __future__ import annotations
+
+from PIL import Image
+
+from degusta_learn.errors import DegustaError
+
+_PROBE = "ANSWER_PROBE_7"
+
+
+def prompt_messages(prompt) -> tuple[list[dict], list[Image.Image]]:
+    """(chat messages with one user turn, its images in order) from a `prompting.Prompt`."""
+    content: list[dict] = []
+    images: list[Image.Image] = []
+    texts: list[str] = []
+    for part in prompt.parts:
+        if isinstance(part, str):
+            texts.append(part)
+            continue
+        if texts:
+            content.append({"type": "text", "text": ("\n" if images else "") + "\n".join(texts) + " "})
+            texts = []
+        content.append({"type": "image"})
+        images.append(part.image.convert("RGB"))
+    if texts:
+        content.append({"type": "text", "text": ("\n" if images else "") + "\n".join(texts)})
+    return [{"role": "user", "content": content}], images
+
+
+class ChatFormat:
+    """What a processor's chat template does around an answer (probed once; see module docstring)."""
+
+    def __init__(self, processor, generation_config=None):
+        self.processor = processor
+        tok = self.tokenizer = processor.tokenizer
+        if not getattr(processor, "chat_template", None):
+            raise DegustaError("model: the processor has no chat template (an instruct/chat VLM is needed)")
+        user = [{"role": "user", "content": [{"type": "text", "text": "x"}]}]
+        prompt = processor.apply_chat_template(user, add_generation_prompt=True, tokenize=False)
+        full = processor.apply_chat_template(user + [assistant_message(_PROBE)], tokenize=False)
+        if not full.startswith(prompt) or _PROBE not in full[len(prompt):]:
+            raise DegustaError("model: its chat template does not render the answer right after the "
+                               "generation prompt; fine-tuning this template is not supported")
+        completion = full[len(prompt):]
+        at = completion.index(_PROBE)
+        self.lead, tail = completion[:at], completion[at + len(_PROBE):]
+        eos = getattr(generation_config, "eos_token_id", None) if generation_config is not None else None
+        stops = [eos] if isinstance(eos, int) else list(eos or [])
+        if tok.eos_token_id is not None:
+            stops.append(tok.eos_token_id)
+        tail_ids = tok(tail, add_special_tokens=False)["input_ids"]
+        special = set(tok.all_special_ids)
+        end = next((i for i in tail_ids if i in stops), None)
+        if end is None:
+            end = next((i for i in tail_ids if i in special), None)
+        if end is None:
+            raise DegustaError("model: its chat template closes the assistant turn without a special "
+                               "end-of-turn token; generation could not learn to stop")
+        self.end_id = end
+        self.end_text = tok.decode([end], skip_special_tokens=False)
+        self.stop_ids = list(dict.fromkeys([end, *stops]))
+        bos = tok.bos_token_id
+        # Templates normally hold the BOS; add it ourselves only if the tokenizer wants one and it is missing.
+        self.add_bos = bool(bos is not None and tok("x")["input_ids"][:1] == [bos] and not prompt.startswith(
+            tok.bos_token or "\0"))
+
+    def prompt_text(self, messages: list[dict]) -> str:
+        text = self.processor.apply_chat_template(messages, add_generation_prompt=True, tokenize=False)
+        return (self.tokenizer.bos_token + text) if self.add_bos else text
+
+    def completion_text(self, answer: str) -> str:
+        """The supervised text: template lead + answer + end-of-turn token."""
+        return self.lead + answer + self.end_text
+
+
+def assistant_message(text: str) -> dict:
+    return {"role": "assistant", "content": [{"type": "text", "text": text}]}
+
+
+def encode_prompt(processor, fmt: ChatFormat, prompt):
+    """Model inputs (1 row, tensors) for generating the answer to `prompt`."""
+    messages, images = prompt_messages(prompt)
+    return processor(text=[fmt.prompt_text(messages)], images=[images] if images else None,
+                     add_special_tokens=False, return_tensors="pt")
+
+
+def set_image_budget(processor, model_config, image_size: int | None, key: str = "model.image_size") -> None:
+    """Fix the processor's per-image cost: one tile of `image_size` px (Idefics3) or image_size^2 px (Qwen)."""
+    ip = processor.image_processor
+    mtype = getattr(model_config, "model_type", "")
+    if mtype == "idefics3":
+        vc = model_config.vision_config
+        size = image_size or ip.max_image_size["longest_edge"]
+        unit = vc.patch_size * model_config.scale_factor
+        if size % unit:
+            raise DegustaError(f"{key}: {size} must be a multiple of patch_size x scale_factor = {unit}")
+        ip.do_image_splitting = False
+        ip.size = {"longest_edge": size}
+        ip.max_image_size = {"longest_edge": size}
+        processor.image_seq_len = (size // vc.patch_size) ** 2 // model_config.scale_factor ** 2
+    elif mtype in ("qwen2_vl", "qwen2_5_vl"):
+        if image_size is None:  # the saved budget, capped at 448 px (Qwen's default max_pixels -> OOM)
+            current = int((ip.size or {}).get("longest_edge", 448 * 448) ** 0.5) // 28 * 28
+            image_size = max(28, min(current, 448) // 28 * 28)
+        size = image_size
+        if size % 28:
+            raise DegustaError(f"{key}: {size} must be a multiple of 28 for Qwen2-VL (patch 14 x merge 2)")
+        # Square images of any size land on exactly size x size px: the +-14 px margins keep Qwen's
+        # floor/ceil rounding (smart_resize) from falling one patch row short or over.
+        lo, hi = (size - 14) ** 2 + 1, (size + 14) ** 2 - 1
+        ip.size = {"shortest_edge": lo, "longest_edge": hi}
+        for attr, value in (("min_pixels", lo), ("max_pixels", hi)):
+            if hasattr(ip, attr):
+                setattr(ip, attr, value)
+    elif image_size:
+        ip.size = {"height": image_size, "width": image_size}
+
+
+def tokens_per_image(processor, fmt: ChatFormat, image_token_id: int) -> int:
+    """How many image tokens one image costs with this processor (measured, not assumed)."""
+    messages = [{"role": "user", "content": [{"type": "image"}, {"type": "text", "text": "x"}]}]
+    enc = processor(text=[fmt.prompt_text(messages)], images=[[Image.new("RGB", (448, 448), "white")]],
+                    add_special_tokens=False)
+    ids = enc["input_ids"][0]
+    return int(sum(1 for i in ids if i == image_token_id))

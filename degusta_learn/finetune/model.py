@@ -1,0 +1,146 @@
+"""Load a VLM (hub id or local folder) with its processor, offline, optionally with a peft adapter.
+
+The same code loads SmolVLM-256M-Instruct from the local hub cache, a tiny model built by `tiny.py`
+and a fine-tuned full model: `AutoModelForImageTextToText` + `AutoProcessor`, never a download
+(`HF_HUB_OFFLINE=1` is set for the process and `local_files_only=True` is passed). A hub id that is
+not in the local cache fails at once with a DegustaError naming the config key, not a hub timeout.
+
+Usage:
+    model, processor = load_vlm("checkpoints/tiny/idefics3")
+    model, processor = load_vlm("HuggingFaceTB/SmolVLM-256M-Instruct", adapter="checkpoints/run/adapter")
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+
+DTYPES = ("auto", "float32", "bfloat16", "float16")
+
+
+def offline() -> None:
+    """Forbid hub downloads for this process (call before importing transformers' hub helpers)."""
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    os.environ.setdefault("TRANSFORMERS_NO_ADVISORY_WARNINGS", "1")
+    try:
+        from transformers.utils import logging as hf_logging
+
+        hf_logging.disable_progress_bar()
+        hf_logging.set_verbosity_error()
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def resolve_device(device: str = "auto") -> str:
+    """'auto' -> 'cuda' when a GPU is visible, else 'cpu'; other values pass through (checked)."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise DegustaError(f"device: {device!r} requested but no CUDA device is visible (use 'cpu' or 'auto')")
+    return device
+
+
+def resolve_dtype(dtype: str, device: str):
+    """'auto' -> bfloat16 on a bf16-capable GPU, float32 on CPU."""
+    import torch
+
+    if dtype not in DTYPES:
+        raise DegustaError(f"dtype: expected one of {list(DTYPES)}, got {dtype!r}")
+    if dtype == "auto":
+        if device.startswith("cuda") and torch.cuda.is_bf16_supported():
+            return torch.bfloat16
+        return torch.float32
+    return getattr(torch, dtype)
+
+
+def check_model_source(model_id_or_path: str, key: str = "model") -> str:
+    """A local folder, or a hub id present in the local cache; else DegustaError naming `key`."""
+    path = Path(model_id_or_path).expanduser()
+    if path.is_dir():
+        if not (path / "config.json").is_file():
+            raise DegustaError(f"{key}: {path} is a folder without config.json (not a saved model)")
+        return str(path)
+    looks_local = model_id_or_path.startswith((".", "/", "~")) or model_id_or_path.count("/") > 1
+    if looks_local:
+        raise DegustaError(f"{key}: model folder {model_id_or_path} not found (a tiny CPU model is built by "
+                           "`degusta train --config configs/finetune_tiny_cpu.yaml`)")
+    from huggingface_hub import try_to_load_from_cache
+
+    try:
+        cached = try_to_load_from_cache(model_id_or_path, "config.json")
+    except Exception:  # invalid repo id syntax
+        cached = None
+    if not isinstance(cached, str):
+        raise DegustaError(
+            f"{key}: {model_id_or_path!r} is neither a local model folder nor in the local Hugging Face cache; "
+            "nothing is downloaded here: fetch it first on a machine with network "
+            f"(`huggingface-cli download {model_id_or_path}`) or give a local folder")
+    return model_id_or_path
+
+
+def load_processor(model_id_or_path: str, key: str = "model"):
+    offline()
+    from transformers import AutoProcessor
+
+    source = check_model_source(model_id_or_path, key)
+    try:
+        processor = AutoProcessor.from_pretrained(source, local_files_only=True)
+    except (OSError, ValueError) as e:
+        raise DegustaError(f"{key}: cannot load the processor of {model_id_or_path!r}: {e}") from None
+    tok = getattr(processor, "tokenizer", None)
+    if tok is None:
+        raise DegustaError(f"{key}: {model_id_or_path!r} has no tokenizer in its processor (not a VLM?)")
+    tok.model_input_names = ["input_ids", "attention_mask"]  # no token_type_ids into generate()
+    return processor
+
+
+def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "auto", dtype: str = "auto",
+             trainable_adapter: bool = False, key: str = "model", quantization_config=None):
+    """Load (model, processor) offline through the Auto classes, with an optional peft adapter.
+
+    Args:
+        model_id_or_path: hub id (must be in the local HF cache) or a saved model folder.
+        adapter: a folder written by `PeftModel.save_pretrained` (degusta writes `<run>/adapter/`).
+        device: "auto", "cpu", "cuda", "cuda:1", ...
+        dtype: "auto" (bf16 on a capable GPU, else fp32), "float32", "bfloat16", "float16".
+        trainable_adapter: keep the adapter weights trainable (resume training) instead of inference mode.
+        key: config key named in error messages.
+        quantization_config: a `BitsAndBytesConfig` (QLoRA); the model is then loaded straight onto the GPU.
+
+    Returns:
+        (model in eval mode on `device`, processor).
+    """
+    offline()
+    from transformers import AutoModelForImageTextToText
+
+    source = check_model_source(model_id_or_path, key)
+    device = resolve_device(device)
+    torch_dtype = resolve_dtype(dtype, device)
+    processor = load_processor(source, key)
+    extra = {}
+    if quantization_config is not None:
+        extra = {"quantization_config": quantization_config, "device_map": {"": device}}
+    try:
+        model = AutoModelForImageTextToText.from_pretrained(source, dtype=torch_dtype, local_files_only=True, **extra)
+    except (OSError, ValueError, KeyError) as e:
+        raise DegustaError(f"{key}: cannot load {model_id_or_path!r} as an image-text-to-text model: {e}") from None
+    if adapter:
+        model = load_adapter(model, adapter, trainable=trainable_adapter)
+    if quantization_config is None:
+        model = model.to(device)
+    return model.eval(), processor
+
+
+def load_adapter(model, adapter: str | Path, trainable: bool = False):
+    """Wrap `model` with the peft adapter saved in `adapter` (plain `PeftModel.from_pretrained`)."""
+    from peft import PeftModel
+
+    path = Path(adapter)
+    if not (path / "adapter_config.json").is_file():
+        raise DegustaError(f"adapter: {path} has no adapter_config.json (expected a folder written by "
+                           "PeftModel.save_pretrained, e.g. checkpoints/<run>/adapter)")
+    return PeftModel.from_pretrained(model, str(path), is_trainable=trainable)

@@ -1,0 +1,161 @@
+"""The LightningModule and DataModule of VLM fine-tuning.
+
+`FinetuneModule` trains with `lm_loss` (answer tokens only) and validates by GENERATING answers for
+held-out (val) participants: each answer is parsed, aggregated and scored like any method's
+prediction, and val/parse_rate, val/rmsd, val/object_accuracy (plus val/loss) are logged. With LoRA,
+Lightning checkpoints hold only the trainable tensors (+ optimizer state), never the frozen base;
+the adapter itself is written with `PeftModel.save_pretrained` to `<run>/adapter/` whenever a
+checkpoint is saved (and at the end), loadable by plain peft.
+
+Usage: built by `train.run` (see `degusta train --config configs/finetune_tiny_cpu.yaml`).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from degusta_learn.finetune.loss import lm_loss, unwrap
+
+
+class FinetuneModule(L.LightningModule):
+    """Wraps a (peft) VLM; see the module docstring."""
+
+    def __init__(self, model, processor, cfg, ds, grid, kind: str, run_dir: Path | None = None):
+        super().__init__()
+        self.model, self.processor, self.cfg = model, processor, cfg
+        self.ds, self.grid, self.kind = ds, grid, kind
+        self.run_dir = run_dir
+        self.lora = cfg.lora.mode in ("lora", "qlora")
+        self.strict_loading = not self.lora  # LoRA checkpoints hold the adapter tensors only
+        self._val: list[dict] = []
+        self._saved_step = -1
+
+    # ------------------------------------------------------------------ training
+    def training_step(self, batch, batch_idx):
+        loss, n = lm_loss(self.model, batch)
+        bs = batch["input_ids"].shape[0]
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        self.log("train/answer_tokens", float(n), batch_size=bs)
+        return loss
+
+    def configure_optimizers(self):
+        o = self.cfg.optim
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        opt = torch.optim.AdamW(params, lr=o.lr, weight_decay=o.weight_decay, betas=(0.9, 0.999))
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+        warm = min(o.warmup_steps, total)
+
+        def factor(step: int) -> float:
+            if step < warm:
+                return (step + 1) / (warm + 1)
+            if o.schedule == "constant":
+                return 1.0
+            progress = (step - warm) / max(1, total - warm)
+            return 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    # ------------------------------------------------------------------ validation (generates)
+    def validation_step(self, batch, batch_idx):
+        inputs, examples = batch
+        loss, n = lm_loss(self.model, inputs)
+        self.log("val/loss", loss, batch_size=len(examples), sync_dist=True)
+        e = self.cfg.eval
+        for ex in examples:
+            self._val.append(self.score(ex, e.constrained))
+            if e.report_unconstrained and e.constrained:
+                self._val[-1]["parsed_free"] = self.score(ex, False)["parsed"]
+
+    def score(self, ex, constrained: bool) -> dict:
+        """Generate one greedy answer for `ex` and score it against the ground truth."""
+        from degusta_learn.finetune.generate import generate_answers
+        from degusta_learn.finetune.grammar import AnswerGrammar
+        from degusta_learn.metrics import score_prediction
+        from degusta_learn.prompting import AnswerParseError, parse_answer
+        from degusta_learn.prompting.aggregate import aggregate
+
+        grammar = AnswerGrammar(self.kind, self.ds.catalog, self.grid) if constrained else None
+        text = generate_answers(self.model, self.processor, ex.prompt, n=1, temperature=0.0,
+                                max_new_tokens=self.cfg.eval.max_new_tokens, constrained=constrained,
+                                grammar=grammar)[0].text
+        try:
+            items = parse_answer(text, self.kind, self.ds.catalog, self.grid)
+        except AnswerParseError:
+            items = None
+        placements, diag = aggregate([items], self.kind, self.grid)
+        gt = self.ds.arrangement(ex.participant, ex.target)
+        s = score_prediction(self.ds.catalog, gt, placements, diag["failed"])
+        return {"parsed": items is not None, "rmsd": s.rmsd, "acc": s.object_accuracy, "text": text}
+
+    def on_validation_epoch_end(self):
+        if not self._val:
+            return
+        rows, self._val = self._val, []
+        rmsds = [r["rmsd"] for r in rows if not math.isnan(r["rmsd"])]
+        stats = {"val/parse_rate": sum(r["parsed"] for r in rows) / len(rows),
+                 "val/rmsd": sum(rmsds) / len(rmsds) if rmsds else float("nan"),
+                 "val/object_accuracy": sum(r["acc"] for r in rows) / len(rows)}
+        if "parsed_free" in rows[0]:
+            stats["val/parse_rate_unconstrained"] = sum(r["parsed_free"] for r in rows) / len(rows)
+        self.log_dict(stats, prog_bar=True, sync_dist=True)
+        self.last_val = {**stats, "example": rows[0]["text"]}
+
+    # ------------------------------------------------------------------ checkpoints: adapters apart
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.lora:
+            keep = {f"model.{n}" for n, p in self.model.named_parameters() if p.requires_grad}
+            checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in keep}
+        if self.lora and self.run_dir is not None and self.global_step != self._saved_step \
+                and self.trainer.is_global_zero:
+            self.save_adapter(self.run_dir / "adapter")
+            self._saved_step = self.global_step
+
+    def save_adapter(self, out: Path) -> Path:
+        from degusta_learn.finetune.lora import save_adapter
+
+        return save_adapter(self.model, out)
+
+
+class FinetuneData(L.LightningDataModule):
+    """Train batches (collated) and val batches ((collated, examples) for loss + generation)."""
+
+    def __init__(self, train, val, collator, batch_size: int, num_workers: int = 0):
+        super().__init__()
+        self.train, self.val, self.collator = train, val, collator
+        self.batch_size, self.num_workers = batch_size, num_workers
+
+    def train_dataloader(self):
+        return DataLoader(self.train, batch_size=self.batch_size, shuffle=True, collate_fn=self.collator,
+                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+
+    def val_dataloader(self):
+        if self.val is None or len(self.val) == 0:
+            return []
+        return DataLoader(self.val, batch_size=self.batch_size, shuffle=False, collate_fn=_ValCollate(self.collator),
+                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+
+
+class _ValCollate:
+    def __init__(self, collator):
+        self.collator = collator
+
+    def __call__(self, examples):
+        return self.collator(examples), examples
+
+
+def enable_gradient_checkpointing(model) -> None:
+    """Activation checkpointing with input grads enabled (else LoRA gets zero gradients)."""
+    hf = unwrap(model)
+    kwargs = {"use_reentrant": False}
+    if hasattr(hf, "activation_checkpointing_enable"):  # transformers >= 5.x name
+        hf.activation_checkpointing_enable(activation_checkpointing_kwargs=kwargs)
+    else:
+        hf.gradient_checkpointing_enable(gradient_checkpointing_kwargs=kwargs)
+    hf.enable_input_require_grads()
+    hf.config.use_cache = False

@@ -1,0 +1,254 @@
+"""Tiny random-weight VLMs built offline, saved like hub models (for CPU tests and smoke runs).
+
+No pretrained weights can be downloaded here, so tests and the CPU configs use tiny models that have
+the *architecture* of the real ones: a tiny Idefics3 (the architecture of SmolVLM-256M/500M-Instruct)
+and a tiny Qwen2-VL. Each comes with a byte-level BPE tokenizer trained in well under a second with
+the `tokenizers` library on the task vocabulary (the prompt texts, answer lists, digits, brackets, cell
+ids, type and direction words), the model's special tokens, its image processor and a chat template
+shaped like the real one. Everything is written with `save_pretrained`, so `load_vlm(folder)` loads it
+through the same Auto classes as a hub id.
+
+Usage:
+    from degusta_learn.finetune.tiny import build_tiny_idefics3
+    path = build_tiny_idefics3("checkpoints/tiny/idefics3")   # ~1 MB, a few seconds
+    model, processor = load_vlm(path)
+
+Sizes follow NOTES-VLM.md: vocab_size == len(tokenizer); image_token_id and pad id overridden;
+image_size / patch_size divisible by scale_factor; one tile per image (do_image_splitting=False), so an
+image costs exactly (image_size / patch_size)^2 / scale_factor^2 tokens (+ 3 wrapper tokens).
+"""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import atomic_write_json
+
+TINY_KINDS = ("idefics3", "qwen2vl")
+TINY_VERSION = 2  # bump when the tiny builders change, so stale cached folders are rebuilt
+
+# Paper prompts (appendix) and the words every answer uses: the tokenizer's training text.
+_PAPER_PROMPTS = (
+    "My preferences for setting a table are shown in the images named final_state_N.jpg. You are helping me "
+    "set the table in initial_state_1.jpg according to my preferences. What objects should I place in this "
+    "image, where should I place them, and how should they be oriented? Please list all grid cells the object "
+    "will intersect after it is placed. Give the orientation as the closest cardinal direction [N, NE, E, SE, "
+    "S, SW, W, NW] the object is pointing in after it is placed. The top of the image is N. Give your answer as "
+    "a python list formatted as follows: [{'type':object_type, 'id': object_reference_id, "
+    "'position':[grid_cell_ids], 'cardinal_direction':direction}]. Give grid_cell_ids as a list of string. "
+    "Give object_id as an integer. Include only this list in your response.",
+    "Give a position in [x,y] where each value is a number between 0 and 1. Give rotation as the number of "
+    "degrees clockwise from image north. Give your answer as a python list formatted as follows: "
+    "[{'type':object_type, 'id': object_reference_id, 'position': [x, y], 'rotation': degrees}].",
+    "The objects you can use are shown in the images named cup.jpg, fork.jpg, knife.jpg, plate.jpg, spoon.jpg, "
+    "each object marked with its id. Placement order in final_state_1.jpg: plate, fork, knife, spoon, cup.",
+)
+_TYPES = ("cup", "fork", "knife", "plate", "spoon")
+_DIRECTIONS = ("N", "NE", "E", "SE", "S", "SW", "W", "NW")
+
+IDEFICS3_SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<end_of_utterance>",
+                    "<fake_token_around_image>", "<image>", "<global-img>",
+                    *[f"<row_{r}_col_{c}>" for r in range(1, 7) for c in range(1, 7)]]
+QWEN2VL_SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>",
+                   "<|vision_pad|>", "<|image_pad|>", "<|video_pad|>"]
+
+# SmolVLM-Instruct's template, shortened; <|im_start|> is its BOS and comes from the template only.
+IDEFICS3_CHAT_TEMPLATE = (
+    "<|im_start|>{% for message in messages %}{{ message['role'] | capitalize }}"
+    "{% if message['content'][0]['type'] == 'image' %}{{ ':' }}{% else %}{{ ': ' }}{% endif %}"
+    "{% for line in message['content'] %}{% if line['type'] == 'text' %}{{ line['text'] }}"
+    "{% elif line['type'] == 'image' %}{{ '<image>' }}{% endif %}{% endfor %}<end_of_utterance>\n"
+    "{% endfor %}{% if add_generation_prompt %}{{ 'Assistant:' }}{% endif %}"
+)
+# Qwen2-VL-Instruct's template without the video branch.
+QWEN2VL_CHAT_TEMPLATE = (
+    "{% for message in messages %}{% if loop.first and message['role'] != 'system' %}"
+    "<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n{% endif %}"
+    "<|im_start|>{{ message['role'] }}\n{% if message['content'] is string %}{{ message['content'] }}"
+    "<|im_end|>\n{% else %}{% for content in message['content'] %}"
+    "{% if content['type'] == 'image' %}<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif content['type'] == 'text' %}{{ content['text'] }}{% endif %}{% endfor %}<|im_end|>\n"
+    "{% endif %}{% endfor %}{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+
+
+def task_corpus(n_answers: int = 400, seed: int = 0) -> list[str]:
+    """In-domain training text for the tiny tokenizers: prompts, answers, cell ids, numbers."""
+    rng = random.Random(seed)
+    cells = [f"{chr(65 + c)}{r}" for c in range(12) for r in range(1, 13)]
+    lines = list(_PAPER_PROMPTS)
+    for _ in range(n_answers):
+        items = []
+        for _ in range(rng.randint(1, 6)):
+            t = rng.choice(_TYPES)
+            pos = sorted(rng.sample(cells, rng.randint(1, 4)))
+            items.append(f"{{'type': '{t}', 'id': {rng.randint(0, 124)}, 'position': {pos}, "
+                         f"'cardinal_direction': '{rng.choice(_DIRECTIONS)}'}}")
+            items.append(f"{{'type': '{t}', 'id': {rng.randint(0, 124)}, 'position': "
+                         f"[{rng.random():.3f}, {rng.random():.3f}], 'rotation': {rng.randint(0, 359)}}}")
+        lines.append("[" + ", ".join(items) + "]")
+    lines += _prompt_texts()
+    lines.append(" ".join(str(i) for i in range(400)))
+    lines.append(" ".join(f"final_state_{i}.jpg initial_state_{i}.jpg" for i in range(1, 6)))
+    return lines
+
+
+def _prompt_texts() -> list[str]:
+    """The prompting part's own task texts and chat-template words (the bulk of every prompt)."""
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.prompting.prompt import task_text
+
+    lines = ["User: Assistant: system You are a helpful assistant. user assistant",
+             "These are the objects I have, one image per object type. Each object is marked with its "
+             "object_reference_id.", "objects.jpg shows the images objects_cup.jpg, objects_fork.jpg, "
+             "objects_knife.jpg side by side, each titled with its name:"]
+    for method in ("louma", "logma", "mouma", "mogma"):
+        for k in (0, 1, 2, 4):
+            names = [f"final_state_{i}.jpg" for i in range(1, k + 1)]
+            lines.append(task_text(method, names, "initial_state_1.jpg", Grid(8, 8), list(_TYPES)))
+    for k in range(1, 5):
+        lines.append(f"Placement order in final_state_{k}.jpg: " + ", ".join(_TYPES[(k + i) % 5] for i in range(6)) + ".")
+    return lines * 4
+
+
+def train_tokenizer(special_tokens: list[str], vocab_size: int = 1024):
+    """A byte-level BPE (`tokenizers`) trained on `task_corpus()`; special tokens get the first ids."""
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+
+    tok = Tokenizer(models.BPE())
+    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=special_tokens, show_progress=False,
+                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
+    tok.train_from_iterator(task_corpus(), trainer=trainer)
+    return tok
+
+
+def _wrap(tok, cls, special: list[str], **tokens):
+    """Wrap a `tokenizers.Tokenizer` as a transformers tokenizer without token_type_ids."""
+    wrapped = cls(tokenizer_object=tok, **tokens)
+    wrapped.add_special_tokens({"additional_special_tokens": [s for s in special if s not in tokens.values()]})
+    wrapped.model_input_names = ["input_ids", "attention_mask"]
+    return wrapped
+
+
+def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: int = 8, hidden: int = 64,
+                        layers: int = 2, seed: int = 0) -> Path:
+    """Build and save a random-weight tiny Idefics3 (SmolVLM architecture) with its processor.
+
+    Args:
+        out_dir: folder to write (created; existing files are overwritten).
+        image_size: side of the one square tile per image, in pixels.
+        patch_size: vision patch side; image_size / patch_size must divide by the scale factor 2.
+        hidden: text hidden size (the vision tower uses hidden // 2).
+        layers: text decoder layers.
+        seed: weight initialisation seed.
+
+    Returns:
+        `out_dir` as a Path, loadable with `load_vlm`.
+    """
+    import torch
+    from transformers import (Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessor,
+                              Idefics3Processor, PreTrainedTokenizerFast)
+
+    scale = 2
+    if (image_size // patch_size) % scale or image_size % patch_size:
+        raise DegustaError(f"image_size {image_size} / patch_size {patch_size} must be a whole number "
+                           f"divisible by the scale factor {scale}")
+    tokenizer = _wrap(train_tokenizer(IDEFICS3_SPECIAL), PreTrainedTokenizerFast, IDEFICS3_SPECIAL,
+                      bos_token="<|im_start|>", eos_token="<end_of_utterance>", pad_token="<|im_end|>",
+                      unk_token="<|endoftext|>")
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in IDEFICS3_SPECIAL}
+    image_seq_len = (image_size // patch_size) ** 2 // scale**2
+    config = Idefics3Config(
+        image_token_id=ids["<image>"], pad_token_id=ids["<|im_end|>"], scale_factor=scale,
+        vision_config=dict(hidden_size=hidden // 2, intermediate_size=hidden, num_hidden_layers=2,
+                           num_attention_heads=4, image_size=image_size, patch_size=patch_size),
+        text_config=dict(model_type="llama", vocab_size=len(tokenizer), hidden_size=hidden,
+                         intermediate_size=2 * hidden, num_hidden_layers=layers, num_attention_heads=4,
+                         num_key_value_heads=2, max_position_embeddings=4096, pad_token_id=ids["<|im_end|>"],
+                         bos_token_id=ids["<|im_start|>"], eos_token_id=ids["<end_of_utterance>"],
+                         tie_word_embeddings=False),
+    )
+    torch.manual_seed(seed)
+    model = Idefics3ForConditionalGeneration(config)
+    _set_generation_ids(model, tokenizer, ids["<end_of_utterance>"], ids["<|im_end|>"])
+    image_processor = Idefics3ImageProcessor(
+        do_image_splitting=False, size={"longest_edge": image_size}, max_image_size={"longest_edge": image_size})
+    processor = Idefics3Processor(image_processor=image_processor, tokenizer=tokenizer,
+                                  image_seq_len=image_seq_len, chat_template=IDEFICS3_CHAT_TEMPLATE)
+    return _save(out_dir, model, processor, "idefics3")
+
+
+def build_tiny_qwen2vl(out_dir: str | Path, image_size: int = 56, hidden: int = 32, layers: int = 4,
+                       seed: int = 0) -> Path:
+    """Build and save a random-weight tiny Qwen2-VL with a Qwen2 tokenizer and its processor.
+
+    `image_size` must be a multiple of 28 (patch 14 x spatial merge 2); an image costs
+    (image_size / 28)^2 tokens. Needs torchvision (the Qwen2-VL video processor).
+    """
+    import torch
+    from transformers import (Qwen2TokenizerFast, Qwen2VLConfig, Qwen2VLForConditionalGeneration,
+                              Qwen2VLImageProcessor, Qwen2VLProcessor, Qwen2VLVideoProcessor)
+
+    if image_size % 28:
+        raise DegustaError(f"image_size {image_size}: a tiny Qwen2-VL needs a multiple of 28")
+    tokenizer = _wrap(train_tokenizer(QWEN2VL_SPECIAL), Qwen2TokenizerFast, QWEN2VL_SPECIAL,
+                      eos_token="<|im_end|>", pad_token="<|endoftext|>", unk_token=None)
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in QWEN2VL_SPECIAL}
+    head_dim = hidden // 4
+    config = Qwen2VLConfig(
+        image_token_id=ids["<|image_pad|>"], video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"], vision_end_token_id=ids["<|vision_end|>"],
+        vision_config=dict(depth=2, embed_dim=32, hidden_size=hidden, num_heads=4, mlp_ratio=2, patch_size=14,
+                           spatial_merge_size=2, temporal_patch_size=2),
+        text_config=dict(vocab_size=len(tokenizer), hidden_size=hidden, intermediate_size=2 * hidden,
+                         num_hidden_layers=layers, num_attention_heads=4, num_key_value_heads=2,
+                         max_position_embeddings=4096, bos_token_id=None, eos_token_id=ids["<|im_end|>"],
+                         pad_token_id=ids["<|endoftext|>"],
+                         rope_scaling={"type": "mrope", "mrope_section": [head_dim // 4, head_dim // 8,
+                                                                          head_dim // 8]}),
+    )
+    torch.manual_seed(seed)
+    model = Qwen2VLForConditionalGeneration(config)
+    _set_generation_ids(model, tokenizer, ids["<|im_end|>"], ids["<|endoftext|>"])
+    pixels = image_size * image_size
+    image_processor = Qwen2VLImageProcessor(min_pixels=pixels, max_pixels=pixels)
+    video_processor = Qwen2VLVideoProcessor(min_pixels=pixels, max_pixels=pixels)
+    processor = Qwen2VLProcessor(image_processor=image_processor, tokenizer=tokenizer,
+                                 video_processor=video_processor, chat_template=QWEN2VL_CHAT_TEMPLATE)
+    return _save(out_dir, model, processor, "qwen2vl")
+
+
+def ensure_tiny(path: str | Path, kind: str) -> Path:
+    """Build the tiny model `kind` at `path` unless a current build is already there."""
+    if kind not in TINY_KINDS:
+        raise DegustaError(f"model.build_tiny: expected one of {list(TINY_KINDS)}, got {kind!r}")
+    path = Path(path)
+    marker = path / "degusta_tiny.json"
+    if marker.is_file() and f'"version": {TINY_VERSION}' in marker.read_text():
+        return path
+    if path.exists() and any(path.iterdir()) and not marker.is_file():
+        raise DegustaError(f"model.build_tiny: {path} exists and is not a tiny model built by degusta_learn; "
+                           "choose another model.name or remove the folder")
+    return (build_tiny_idefics3 if kind == "idefics3" else build_tiny_qwen2vl)(path)
+
+
+def _set_generation_ids(model, tokenizer, eos_id: int, pad_id: int) -> None:
+    gc = model.generation_config
+    gc.eos_token_id, gc.pad_token_id, gc.bos_token_id = eos_id, pad_id, tokenizer.bos_token_id
+
+
+def _save(out_dir, model, processor, kind: str) -> Path:
+    from degusta_learn.finetune.model import offline
+
+    offline()  # quiet progress bars; no hub calls
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model.save_pretrained(out)
+    processor.save_pretrained(out)
+    atomic_write_json(out / "degusta_tiny.json", {"kind": kind, "version": TINY_VERSION,
+                                                 "note": "random weights, built offline by degusta_learn"})
+    return out

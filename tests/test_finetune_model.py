@@ -1,0 +1,75 @@
+"""Tiny offline VLMs load through the Auto classes; image-token counts match; bad model ids fail fast."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import torch
+from finetune_support import load, tiny_dir
+from PIL import Image
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.inputs import ChatFormat, set_image_budget, tokens_per_image
+from degusta_learn.finetune.model import load_vlm
+
+
+@pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
+def test_tiny_model_loads_like_a_hub_model(kind):
+    model, processor = load(kind)
+    assert type(model).__name__ == {"idefics3": "Idefics3ForConditionalGeneration",
+                                    "qwen2vl": "Qwen2VLForConditionalGeneration"}[kind]
+    tok = processor.tokenizer
+    assert model.config.get_text_config().vocab_size == len(tok)
+    assert model.config.image_token_id == tok.convert_tokens_to_ids(processor.image_token)
+    assert "token_type_ids" not in tok.model_input_names
+    if kind == "qwen2vl":
+        assert type(tok).__name__ in ("Qwen2TokenizerFast", "Qwen2Tokenizer")
+    # Nothing of this model is big enough to matter in git or a test cache.
+    assert sum(f.stat().st_size for f in tiny_dir(kind).iterdir()) < 2_000_000
+
+
+@pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
+def test_image_token_count_matches_the_model(kind):
+    model, processor = load(kind)
+    fmt = ChatFormat(processor, model.generation_config)
+    per_image = tokens_per_image(processor, fmt, model.config.image_token_id)
+    if kind == "idefics3":  # one tile per image: (image_size / patch)^2 / scale^2, no splitting
+        vc = model.config.vision_config
+        assert per_image == (vc.image_size // vc.patch_size) ** 2 // model.config.scale_factor ** 2
+    else:  # 56 px -> 4 x 4 patches merged 2 x 2
+        assert per_image == 4
+    messages = [{"role": "user", "content": [{"type": "image"}, {"type": "image"}, {"type": "image"},
+                                             {"type": "text", "text": "where?"}]}]
+    images = [Image.new("RGB", (300, 300), c) for c in ("red", "green", "blue")]  # rendered images are square
+    enc = processor(text=[fmt.prompt_text(messages)], images=[images], add_special_tokens=False, return_tensors="pt")
+    assert int((enc["input_ids"] == model.config.image_token_id).sum()) == 3 * per_image
+    with torch.no_grad():
+        out = model(**enc)  # raises if image features and image tokens disagree
+    assert out.logits.shape[1] == enc["input_ids"].shape[1]
+
+
+def test_image_budget_is_explicit_and_checked():
+    model, processor = load("idefics3")
+    set_image_budget(processor, model.config, 32)
+    fmt = ChatFormat(processor, model.generation_config)
+    assert tokens_per_image(processor, fmt, model.config.image_token_id) == (32 // 8) ** 2 // 4
+    with pytest.raises(DegustaError, match="model.image_size"):
+        set_image_budget(processor, model.config, 36)
+
+
+def test_unloadable_model_id_fails_fast_naming_the_key(tmp_path):
+    start = time.time()
+    with pytest.raises(DegustaError, match=r"model: .*not-a-real-org/no-such-vlm.*local Hugging Face cache"):
+        load_vlm("not-a-real-org/no-such-vlm")
+    assert time.time() - start < 5  # no hub timeout
+    with pytest.raises(DegustaError, match="backend.model: model folder .*missing.* not found"):
+        load_vlm(str(tmp_path / "missing"), key="backend.model")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DegustaError, match="without config.json"):
+        load_vlm(str(tmp_path / "empty"))
+
+
+def test_adapter_folder_must_be_a_peft_adapter(tmp_path):
+    with pytest.raises(DegustaError, match="adapter: .*adapter_config.json"):
+        load_vlm(str(tiny_dir("idefics3")), adapter=str(tmp_path))
