@@ -64,3 +64,17 @@ def test_refuses_unknown_episode_and_missing_predictions(small_dataset_dir, tmp_
     assert main([*args, "--predictions", str(tmp_path / "bad.jsonl")]) == 2
     assert "bad.jsonl:1: field 'episode': unknown episode 'nobody/t0/k2'" in capsys.readouterr().err
     assert not (tmp_path / "eval").exists()
+
+
+def test_one_object_predictions_are_flagged(small_dataset_dir, tmp_path):
+    ds = load_dataset(small_dataset_dir)
+    eps = make_episodes(ds, 2, "all")
+    preds = _predictions(ds, eps, "lonely", shift=0.3)
+    for p in preds:
+        p.placements = p.placements[:1]
+    write_predictions(tmp_path / "lonely.jsonl", preds)
+    assert main(["evaluate", "--dataset", str(small_dataset_dir), "--predictions", str(tmp_path / "lonely.jsonl"),
+                 "--out", str(tmp_path / "ev"), "--bootstrap", "50"]) == 0
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())["lonely"]
+    assert metrics["rmsd"]["mean"] == pytest.approx(0.0) and metrics["few_objects_rate"] == 1.0
+    assert "Warning: lonely matches at most 2 objects in 100%" in (tmp_path / "ev" / "report.md").read_text()

@@ -10,7 +10,7 @@ import numpy as np
 
 from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
 from degusta_learn.evaluate.report import (
-    METRIC_NOTES, acceptability_lines, context_table, method_table, write_per_episode_csv,
+    METRIC_NOTES, acceptability_lines, context_table, few_object_warnings, method_table, write_per_episode_csv,
 )
 from degusta_learn.fileio import atomic_write_json, atomic_write_text
 
@@ -127,7 +127,8 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         rmsds = {m: np.array([r.rmsd for r in rows if r.method == m and math.isfinite(r.rmsd)]) for m in summary}
         plot_acceptability(curve, rmsds, plots / "acceptability.png")
         has_ctx = plot_context(summary, plots / "context.png", floor) is not None
-        lines += ["## Results", "", *method_table(summary), "", "![metrics](plots/metrics.png)", ""]
+        lines += ["## Results", "", *method_table(summary), "", *few_object_warnings(summary),
+                  "![metrics](plots/metrics.png)", ""]
         lines += ["## Acceptability (the paper's Table 1)", "", *acceptability_lines(curve, ds.ratings is not None), "",
                   *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
         ctx = context_table(summary)

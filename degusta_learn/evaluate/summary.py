@@ -39,6 +39,9 @@ def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 
     for name in METRICS:
         values = np.array([getattr(r, name) for r in rows], dtype=float)
         out[name] = _interval(values, n_bootstrap, seed)
+    scored = [r for r in rows if not r.failed]
+    # Kabsch RMSD is ~0 by construction with 1-2 matched objects: say how often that happens.
+    out["few_objects_rate"] = round(sum(r.n_matched <= 2 for r in scored) / len(scored), 6) if scored else None
     rmsds = np.array([r.rmsd for r in rows], dtype=float)
     out["acceptable_at"] = {f"{t:.2f}": round(v, 6) for t, v in fraction_acceptable(rmsds, THRESHOLDS).items()}
     tokens = [r.tokens for r in rows if r.tokens is not None]

@@ -1,0 +1,151 @@
+"""`degusta quickstart`: the main job on the embedded default, on a CPU in about 10 minutes.
+
+Usage:
+    degusta quickstart                      # everything under ./quickstart/
+    degusta quickstart --out runs/qs --small  # a reduced size that finishes in a couple of minutes (CI)
+
+Steps (each prints what it does; a re-run reuses what an interrupted run finished):
+  1. generate the SYNTHETIC naturalistic dataset;
+  2. pick the episodes: every test participant, one target trial each, at context 0, 2 and 4;
+  3. train the learned arrangement model (CPU config);
+  4. fine-tune the tiny offline VLM with LoRA (CPU config; no pretrained weights exist offline);
+  5. compare heuristic baselines, the oracle, the learned model, and the tiny VLM zero-shot and
+     fine-tuned through the `hf` backend (plus zero-shot GPT-4o MOGMA with --with-api) in one report.
+
+Every config it runs is written to `<out>/configs/` so that each step can be re-run or changed by hand.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from degusta_learn.config import apply_overrides, read_yaml
+from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import atomic_write_text
+from degusta_learn.scene import Episode, load_dataset, make_episodes, write_episodes
+
+BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def _config(name: str, out_dir: Path, overrides: list[str], command: str) -> Path:
+    """Take the shipped configs/<name>.yaml, apply `overrides`, write it to `out_dir` and return that path."""
+    src = CONFIGS / f"{name}.yaml"
+    if not src.is_file():
+        raise DegustaError(f"quickstart needs the shipped {src} (run it from a source checkout installed with "
+                           "`pip install -e .`)")
+    data = apply_overrides(read_yaml(src), overrides)
+    path = out_dir / f"{name}.yaml"
+    atomic_write_text(path, f"# {command} --config {path}\n# written by degusta quickstart from configs/{name}.yaml\n"
+                      + yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def quickstart_episodes(ds, seed: int = 0, per_participant: int = 1) -> list[Episode]:
+    """One (seeded) target per test participant at each context length: the same set for every method."""
+    chosen = []
+    for k in (0, 2, 4):
+        by_p: dict[str, list[Episode]] = {}
+        for e in make_episodes(ds, k, "test", seed):
+            by_p.setdefault(e.participant, []).append(e)
+        for p, eps in sorted(by_p.items()):
+            rng = np.random.default_rng([seed, k, int.from_bytes(p.encode()[:8].ljust(8, b"\0"), "little") % 2**32])
+            chosen += [eps[i] for i in sorted(rng.choice(len(eps), size=min(per_participant, len(eps)), replace=False))]
+    return chosen
+
+
+def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api: bool = False, log=print) -> Path:
+    from degusta_learn.evaluate.compare import CompareConfig, MethodEntry, compare
+    from degusta_learn.methods import run_train
+    from degusta_learn.synth import generate_dataset
+
+    t0 = time.time()
+    out = Path(out)
+    cfg_dir, data_dir = out / "configs", out / "data" / "naturalistic"
+
+    def step(msg: str) -> None:
+        log(f"[quickstart {time.time() - t0:5.0f}s] {msg}")
+
+    if not (data_dir / "arrangements.jsonl").exists():
+        step("1/5 generating the SYNTHETIC naturalistic dataset")
+        generate_dataset("naturalistic", data_dir, seed=0)
+    else:
+        step(f"1/5 reusing the dataset in {data_dir}")
+    ds = load_dataset(data_dir)
+
+    episodes = quickstart_episodes(ds)
+    if small:
+        episodes = [e for e in episodes if e.participant in sorted({x.participant for x in episodes})[:4]]
+    ep_file = out / "episodes.jsonl"
+    write_episodes(ep_file, episodes)
+    step(f"2/5 {len(episodes)} episodes (test participants, context 0/2/4) -> {ep_file}")
+
+    runs = out / "runs"
+    entries = []
+    for name in BASELINES:
+        cfg_name = name if name == "oracle" else f"baseline_{name}"
+        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"out={runs / name / 'predictions.jsonl'}"],
+                       "degusta predict")
+        entries.append(MethodEntry(name=name, config=str(path)))
+
+    step("3/5 training the learned arrangement model (configs/learned_cpu.yaml)")
+    ckpt = out / "checkpoints"
+    learned = _config("learned_cpu", cfg_dir, [f"data.dataset={data_dir}", f"trainer.run_dir={ckpt}",
+                                               "trainer.run_name=learned"] + (["trainer.max_epochs=1"] if small else []),
+                      "degusta train")
+    run_dir = run_train(learned, [])
+    path = _config("learned_predict", cfg_dir, [f"dataset={data_dir}", f"checkpoint={run_dir}",
+                                                f"out={runs / 'learned' / 'predictions.jsonl'}"], "degusta predict")
+    entries.append(MethodEntry(name="learned", config=str(path)))
+
+    step("4/5 fine-tuning the tiny offline VLM with LoRA (configs/finetune_tiny_cpu.yaml)")
+    tiny = ckpt / "tiny" / "idefics3"
+    finetune = _config("finetune_tiny_cpu", cfg_dir,
+                       [f"dataset={data_dir}", f"model.name={tiny}", f"trainer.run_dir={ckpt}",
+                        "trainer.run_name=finetune_tiny"] + (SMALL_FINETUNE if small else []), "degusta train")
+    ft_dir = run_train(finetune, [])
+    for name, adapter in (("tiny_vlm_zeroshot", None), ("tiny_vlm_finetuned", ft_dir / "adapter")):
+        cfg_name = "predict_hf_tiny_zeroshot" if adapter is None else "predict_hf_tiny_finetuned"
+        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={tiny}",
+                                           f"backend.adapter={adapter if adapter else 'null'}",
+                                           f"out={runs / name / 'predictions.jsonl'}"], "degusta predict")
+        entries.append(MethodEntry(name=name, config=str(path)))
+
+    if with_api or os.environ.get("OPENAI_API_KEY"):
+        entries += api_entry(data_dir, out, cfg_dir, ep_file, with_api, step)
+    else:
+        step("no OPENAI_API_KEY: to add a zero-shot GPT-4o MOGMA row, export OPENAI_API_KEY=... and run "
+             "`degusta quickstart --with-api` (see configs/zeroshot_mogma_gpt4o.yaml for a local server)")
+
+    step("5/5 comparing every method on the same episodes")
+    report = compare(CompareConfig(dataset=str(data_dir), out=str(out / "report"), methods=entries,
+                                   episodes=str(ep_file), n_bootstrap=300 if small else 1000,
+                                   title="degusta quickstart: every method on the SYNTHETIC naturalistic default"),
+                     log=log)
+    step(f"done. Report: {report / 'report.md'} (open {report / 'report.html'} in a browser)")
+    return report
+
+
+SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4"]
+
+
+def api_entry(data_dir: Path, out: Path, cfg_dir: Path, ep_file: Path, with_api: bool, step) -> list:
+    """The zero-shot GPT-4o MOGMA row: a cost estimate first; added only with --with-api."""
+    from degusta_learn.evaluate.compare import MethodEntry
+    from degusta_learn.methods import run_predict
+
+    path = _config("zeroshot_mogma_gpt4o", cfg_dir, [f"dataset={data_dir}", f"episodes={ep_file}",
+                                                     f"out={out / 'runs' / 'mogma_gpt4o' / 'predictions.jsonl'}"],
+                   "degusta predict")
+    run_predict(path, [], dry_run=True, log=step)
+    if not with_api:
+        step("OPENAI_API_KEY found: the estimate above is what a zero-shot GPT-4o MOGMA row costs; "
+             "add it with `degusta quickstart --with-api`")
+        return []
+    step("adding the zero-shot GPT-4o MOGMA row (cached: a re-run does not pay twice)")
+    return [MethodEntry(name="mogma_gpt4o", config=str(path))]
