@@ -1,0 +1,19 @@
+"""Learned baseline: a transformer that reads a participant's context arrangements as object tokens and
+places the target arrangement object by object (see model.py for the architecture and why).
+
+Usage:
+    degusta train --config configs/learned_cpu.yaml              # -> checkpoints/learned_cpu/
+    degusta predict --config configs/learned_predict.yaml        # -> predictions.jsonl
+
+Registered as TRAINERS["learned"] (`TRAINER`) and METHODS["learned"] (`METHOD`).
+"""
+
+from degusta_learn.baselines.learned.predict import LearnedPredictConfig, load_model, predict_episodes, run
+from degusta_learn.baselines.learned.train import LearnedTrainConfig, build, train
+from degusta_learn.methods import MethodSpec, TrainerSpec
+
+TRAINER = TrainerSpec(LearnedTrainConfig, train, "transformer arrangement model (PyTorch + Lightning)")
+METHOD = MethodSpec(LearnedPredictConfig, run, "a trained learned arrangement model (config key: checkpoint)")
+
+__all__ = ["METHOD", "TRAINER", "LearnedPredictConfig", "LearnedTrainConfig", "build", "load_model",
+           "predict_episodes", "run", "train"]

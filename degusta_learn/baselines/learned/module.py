@@ -1,0 +1,133 @@
+"""LightningModule of the learned arrangement model: losses, optimizer, validation by real decoding.
+
+Training minimizes the teacher-forced loss of `ArrangementModel.loss`. Validation does two things on the
+val participants' episodes: the same loss (`val/loss`), and a full greedy prediction of every episode
+scored with `degusta_learn.metrics.score_prediction` exactly as `degusta evaluate` would — logged as
+`val/rmsd`, `val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`,
+`val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Sums are reduced across devices, so the
+numbers are exact under DDP.
+
+Hyperparameters are saved as plain dicts (model config, optimizer config, vocabulary) plus
+`kind: "learned"`, so checkpoints load with `torch.load(..., weights_only=True)` and a checkpoint of
+another model kind is recognized (see predict.py).
+
+Usage:
+    module = LearnedModule(model=asdict(ModelConfig()), optim=asdict(OptimConfig()), vocab=vocab.to_dict())
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import lightning as L
+import torch
+
+from degusta_learn.baselines.learned.decode import greedy_decode
+from degusta_learn.baselines.learned.features import Vocab, onto_surface
+from degusta_learn.baselines.learned.model import ArrangementModel, ModelConfig
+from degusta_learn.errors import DegustaError
+from degusta_learn.metrics import score_prediction
+from degusta_learn.scene import Placement
+
+KIND = "learned"
+FORMAT = 1
+
+
+@dataclass
+class OptimConfig:
+    """The `optim:` section: AdamW with linear warmup and cosine decay to `min_lr_ratio * lr`."""
+
+    lr: float = 1e-3
+    """Peak learning rate."""
+    weight_decay: float = 0.01
+    """AdamW weight decay (not applied to embeddings, norms and biases)."""
+    warmup_steps: int = 100
+    """Linear warmup steps."""
+    min_lr_ratio: float = 0.05
+    """Final learning rate as a fraction of lr (cosine schedule over the whole run)."""
+
+    def __post_init__(self):
+        if self.lr <= 0:
+            raise DegustaError(f"optim.lr: expected > 0, got {self.lr}")
+        if not 0 <= self.min_lr_ratio <= 1:
+            raise DegustaError(f"optim.min_lr_ratio: expected in [0, 1], got {self.min_lr_ratio}")
+
+
+class LearnedModule(L.LightningModule):
+    def __init__(self, model: dict, optim: dict, vocab: dict, min_objects: int = 1, kind: str = KIND,
+                 format: int = FORMAT):
+        super().__init__()
+        self.save_hyperparameters()
+        self.model = ArrangementModel(ModelConfig(**model), Vocab(**vocab))
+        self.optim_cfg = OptimConfig(**optim)
+        self.min_objects = min_objects
+        self._val: list[torch.Tensor] = []
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        losses = self.model.loss(batch, self.model(batch))
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=len(batch["tgt_table"]))
+        self.log("loss", losses["loss"], prog_bar=True, logger=False)
+        return losses["loss"]
+
+    # --- validation: loss + decoded predictions scored by degusta_learn.metrics ---------------------------
+    def on_validation_epoch_start(self) -> None:
+        self._val = []
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        losses = self.model.loss(batch, self.model(batch))
+        self.log_dict({f"val/{'loss' if k == 'loss' else 'loss_' + k}": v for k, v in losses.items()},
+                      batch_size=len(batch["tgt_table"]), sync_dist=True)
+        dm = self.trainer.datamodule
+        objs, xys, rots = greedy_decode(self.model, batch, self.min_objects)
+        ids = [o["id"] for o in self.model.vocab.catalog]
+        for i, rows, xy, rot in zip(batch["index"].tolist(), objs, xys, rots):
+            e = dm.val_episodes[i]
+            gt = dm.ds.arrangement(e.participant, e.target)
+            xy = onto_surface(dm.ds.tables[gt.table], xy)
+            s = score_prediction(dm.ds.catalog, gt, [Placement(ids[r], *p, float(a)) for r, p, a in zip(rows, xy, rot)])
+            ok = not math.isnan(s.rmsd)
+            self._val.append(torch.tensor([len(e.context), 1.0, s.object_accuracy, s.rmsd if ok else 0.0, float(ok),
+                                           s.rmsd_unregistered if ok else 0.0, s.count_error,
+                                           ok and s.rmsd <= 0.05, ok and s.rmsd <= 0.10], dtype=torch.float64))
+
+    def on_validation_epoch_end(self) -> None:
+        ks = sorted(set(self.trainer.datamodule.cfg.val_context_lengths))
+        rows = torch.stack(self._val) if self._val else torch.zeros(0, 9, dtype=torch.float64)
+        # per context length: sums of [n, acc, rmsd, n_rmsd, rmsd_unreg, count_error, acc@.05, acc@.10]
+        sums = torch.stack([rows[rows[:, 0] == k, 1:].sum(0) for k in ks] + [rows[:, 1:].sum(0)])
+        sums = self.trainer.strategy.reduce(sums.to(self.device), reduce_op="sum").double().cpu()
+        for name, s in zip([f"_k{k}" for k in ks] + [""], sums):
+            n, nr = max(float(s[0]), 1.0), float(s[3])
+            metrics = {"object_accuracy": s[1] / n, "rmsd": s[2] / nr if nr else float("nan"),
+                       "rmsd_unregistered": s[4] / nr if nr else float("nan"), "count_error": s[5] / n,
+                       "acceptable_0.05": s[6] / n, "acceptable_0.10": s[7] / n}
+            for key, value in metrics.items():
+                if name and key not in ("object_accuracy", "rmsd"):
+                    continue
+                # already summed over devices: identical on every rank, so sync_dist's mean changes nothing
+                self.log(f"val/{key}{name}", float(value), prog_bar=not name and key in ("rmsd", "object_accuracy"),
+                         sync_dist=True)
+        self._val = []
+
+    # --- optimizer ---------------------------------------------------------------------------------------
+    def configure_optimizers(self):
+        cfg = self.optim_cfg
+        decay, no_decay = [], []
+        for mod in self.model.modules():
+            for p in mod.parameters(recurse=False):
+                plain = p.dim() < 2 or isinstance(mod, (torch.nn.Embedding, torch.nn.LayerNorm))
+                (no_decay if plain else decay).append(p)
+        opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
+                                 {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr)
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+        warm, floor = min(cfg.warmup_steps, total // 2), cfg.min_lr_ratio
+
+        def factor(step: int) -> float:
+            if step < warm:
+                return (step + 1) / warm
+            t = min(1.0, (step - warm) / max(1, total - warm))
+            return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

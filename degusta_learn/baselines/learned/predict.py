@@ -1,0 +1,110 @@
+"""`degusta predict` for a trained learned model: load a checkpoint weights-only, decode every episode.
+
+`checkpoint` is a run folder (its best.ckpt, else last.ckpt) or a .ckpt file. Loading uses
+`torch.load(..., weights_only=True)`; a file that is not a checkpoint, or a checkpoint of another model kind
+(e.g. a fine-tuning run), is refused with a DegustaError naming the file.
+
+Usage:
+    degusta predict --config configs/learned_predict.yaml --set checkpoint=checkpoints/learned_cpu --set context=2
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from degusta_learn.baselines.learned.decode import greedy_decode
+from degusta_learn.baselines.learned.features import Vocab, collate, encode_sample, onto_surface
+from degusta_learn.baselines.learned.model import ArrangementModel, ModelConfig
+from degusta_learn.baselines.learned.module import KIND
+from degusta_learn.errors import DegustaError
+from degusta_learn.methods import PredictConfig
+from degusta_learn.scene import Dataset, Episode, Placement, Prediction
+
+
+@dataclass
+class LearnedPredictConfig(PredictConfig):
+    """Predict config of method `learned`: the PredictConfig keys plus the checkpoint to use."""
+
+    checkpoint: str = ""
+    """A run folder (uses best.ckpt, else last.ckpt) or a .ckpt file."""
+    batch_size: int = 64
+    """Episodes decoded together."""
+    device: str = "cpu"
+    """Torch device for decoding ("cpu", "cuda", "cuda:1")."""
+    num_threads: int | None = 1
+    """CPU threads torch may use (null: torch's default; decoding is light, 1 suits shared machines)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.checkpoint:
+            raise DegustaError("checkpoint: required (a run folder such as checkpoints/learned_cpu, or a .ckpt)")
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A run folder -> its best.ckpt (else last.ckpt); a file -> itself."""
+    path = Path(path)
+    if path.is_dir():
+        for name in ("best.ckpt", "last.ckpt"):
+            if (path / name).is_file():
+                return path / name
+        raise DegustaError(f"{path}: no best.ckpt or last.ckpt in this run folder (train it first)")
+    if not path.is_file():
+        raise DegustaError(f"{path}: checkpoint not found")
+    return path
+
+
+def load_model(path: str | Path, device: str = "cpu") -> tuple[ArrangementModel, dict]:
+    """Load a learned-model checkpoint weights-only; returns (model in eval mode, hyperparameters)."""
+    ckpt_path = resolve_checkpoint(path)
+    try:
+        ckpt = torch.load(ckpt_path, map_location=device, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unpickling/format problem is a bad user file
+        raise DegustaError(f"{ckpt_path}: not a loadable weights-only checkpoint ({type(e).__name__}: "
+                           f"{str(e).splitlines()[0][:200]})") from None
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    kind = hp.get("kind") if isinstance(hp, dict) else None
+    if kind != KIND:
+        raise DegustaError(f"{ckpt_path}: a checkpoint of kind {kind!r}, not a {KIND!r} arrangement model "
+                           f"(use the predict config of the method that trained it)")
+    model = ArrangementModel(ModelConfig(**hp["model"]), Vocab(**hp["vocab"]))
+    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    model.load_state_dict(state)
+    return model.to(device).eval(), hp
+
+
+def predict_episodes(model: ArrangementModel, ds: Dataset, episodes: list[Episode], min_objects: int = 1,
+                     batch_size: int = 64, method: str = KIND, diagnostics: dict | None = None) -> list[Prediction]:
+    """Greedy predictions for `episodes` (one Prediction each, placements on the target table's surface)."""
+    device = next(model.parameters()).device
+    ids = [o["id"] for o in model.vocab.catalog]
+    out = []
+    for start in range(0, len(episodes), batch_size):
+        chunk = episodes[start:start + batch_size]
+        samples = []
+        for e in chunk:
+            table = ds.arrangement(e.participant, e.target).table
+            ctx = [ds.arrangement(e.participant, c) for c in e.context]
+            samples.append(encode_sample(model.vocab, ds.tables, ctx, table, None, model.cfg.max_objects))
+        batch = {k: v.to(device) for k, v in collate(samples).items()}
+        for e, rows, xy, rot in zip(chunk, *greedy_decode(model, batch, min_objects)):
+            table = ds.arrangement(e.participant, e.target).table
+            xy = onto_surface(ds.tables[table], xy)
+            placements = [Placement(ids[r], float(x), float(y), float(a)) for r, (x, y), a in zip(rows, xy, rot)]
+            out.append(Prediction(e.id, e.participant, e.target, method, placements, False, dict(diagnostics or {})))
+    return out
+
+
+def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
+    """MethodSpec.run of method `learned`."""
+    if cfg.num_threads:
+        torch.set_num_threads(cfg.num_threads)
+    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise DegustaError(f"device: {cfg.device!r} requested but no CUDA device is available (use device: cpu)")
+    model, hp = load_model(cfg.checkpoint, cfg.device)
+    model.vocab.check_catalog(ds.catalog, f"{cfg.dataset}/catalog.json")
+    with torch.no_grad():
+        return predict_episodes(model, ds, episodes, hp.get("min_objects", 1), cfg.batch_size,
+                                diagnostics={"checkpoint": str(resolve_checkpoint(cfg.checkpoint))})

@@ -1,0 +1,95 @@
+"""The shared Lightning harness: run folder + config.yaml, checkpoints, resume, refusals, config errors."""
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader, TensorDataset
+
+from degusta_learn.config import from_dict, read_yaml
+from degusta_learn.errors import DegustaError
+from degusta_learn.trainer import TrainerConfig, fit, prepare_run_dir
+
+
+class Toy(L.LightningModule):
+    """Linear regression; logs val/rmsd so ModelCheckpoint can pick best.ckpt."""
+
+    def __init__(self):
+        super().__init__()
+        self.save_hyperparameters({"kind": "toy"})
+        self.lin = torch.nn.Linear(2, 1)
+
+    def training_step(self, batch, _):
+        x, y = batch
+        return ((self.lin(x) - y) ** 2).mean()
+
+    def validation_step(self, batch, _):
+        x, y = batch
+        self.log("val/rmsd", ((self.lin(x) - y) ** 2).mean().sqrt())
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+class ToyData(L.LightningDataModule):
+    def __init__(self):
+        super().__init__()
+        g = torch.Generator().manual_seed(0)
+        x = torch.randn(32, 2, generator=g)
+        self.ds = TensorDataset(x, x.sum(1, keepdim=True))
+
+    def train_dataloader(self):
+        return DataLoader(self.ds, batch_size=8)
+
+    def val_dataloader(self):
+        return DataLoader(self.ds, batch_size=16)
+
+
+def cfg(tmp_path, **kw) -> TrainerConfig:
+    base = dict(run_dir=str(tmp_path), run_name="toy", max_epochs=-1, max_steps=4, accelerator="cpu",
+                devices=1, progress_bar=False, log_every_n_steps=1, val_check_interval=2)
+    return TrainerConfig(**{**base, **kw})
+
+
+def test_fit_writes_run_folder_and_resumes(tmp_path):
+    full = {"kind": "toy", "lr": 0.1, "trainer": {"max_steps": 4}}
+    run = fit(Toy(), ToyData(), cfg(tmp_path), full_config=full)
+    assert run == tmp_path / "toy"
+    for name in ("config.yaml", "last.ckpt", "best.ckpt", "csv/version_0/metrics.csv"):
+        assert (run / name).is_file(), name
+    assert list((run / "tb").glob("version_0/events.*"))
+    assert read_yaml(run / "config.yaml") == full
+    ckpt = torch.load(run / "last.ckpt", weights_only=True)  # plain data only
+    assert ckpt["global_step"] == 4 and ckpt["hyper_parameters"]["kind"] == "toy"
+    assert "val/rmsd" in (run / "csv/version_0/metrics.csv").read_text().splitlines()[0]
+    # an interrupted run, resumed with a larger budget, continues from step 4; logs of the first part are kept
+    fit(Toy(), ToyData(), cfg(tmp_path, max_steps=7), full_config={**full, "trainer": {"max_steps": 7}})
+    assert torch.load(run / "last.ckpt", weights_only=True)["global_step"] == 7
+    assert (run / "csv/version_0/metrics.csv").is_file() and (run / "csv/version_1/metrics.csv").is_file()
+
+
+def test_refuses_to_overwrite_or_mix_runs(tmp_path):
+    run, resume_from = prepare_run_dir(cfg(tmp_path), {"kind": "toy", "lr": 0.1})
+    assert resume_from is None and read_yaml(run / "config.yaml") == {"kind": "toy", "lr": 0.1}
+    (run / "last.ckpt").write_bytes(b"stands in for an interrupted run")
+    assert prepare_run_dir(cfg(tmp_path), {"kind": "toy", "lr": 0.1, "trainer": {"max_steps": 9}})[1] == run / "last.ckpt"
+    with pytest.raises(DegustaError, match="trainer.resume=true"):
+        prepare_run_dir(cfg(tmp_path, resume=False), {"kind": "toy", "lr": 0.1})
+    with pytest.raises(DegustaError, match="'lr' was 0.1 and is now 0.5"):
+        prepare_run_dir(cfg(tmp_path), {"kind": "toy", "lr": 0.5})
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"max_epoch": 3}, "unknown key 'max_epoch'"),
+    ({"max_epochs": "ten"}, "max_epochs: expected int"),
+    ({"run_name": "a/b"}, "trainer.run_name"),
+    ({"max_epochs": -1, "max_steps": -1}, "set at least one"),
+    ({"monitor_mode": "lowest"}, "trainer.monitor_mode"),
+])
+def test_bad_trainer_config_names_the_key(data, message):
+    with pytest.raises(DegustaError, match=message):
+        from_dict(TrainerConfig, data)
+
+
+def test_val_check_interval_keeps_int_and_float():
+    assert from_dict(TrainerConfig, {"val_check_interval": 50}).val_check_interval == 50
+    assert isinstance(from_dict(TrainerConfig, {"val_check_interval": 0.5}).val_check_interval, float)
