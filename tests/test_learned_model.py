@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from degusta_learn.baselines.learned.data import DataConfig, TrainEpisodes, ValEpisodes, mirror, swap_table
+from degusta_learn.baselines.learned.data import (
+    DataConfig, TrainEpisodes, ValEpisodes, mirror, relabel, shuffle_mapping, swap_table,
+)
 from degusta_learn.baselines.learned.decode import greedy_decode
 from degusta_learn.baselines.learned.features import (
     Vocab, collate, onto_surface, position_features, table_geometry,
@@ -123,7 +125,12 @@ def test_augmentations_keep_the_task(small_dataset):
     assert table.contains(moved.positions[:, 0], moved.positions[:, 1]).all()
     d = lambda a: np.linalg.norm(a.positions[:, None] - a.positions[None], axis=-1)  # noqa: E731
     np.testing.assert_allclose(d(moved), d(arr), atol=0.02)  # physical spacing kept (small layouts)
-    ts = TrainEpisodes(ds, ds.participants, Vocab.from_dataset(ds), DataConfig(table_swap=1.0, mirror=1.0), 8)
+    mapping = shuffle_mapping(ds, np.random.default_rng(0))
+    assert sorted(mapping.values()) == sorted(mapping) and mapping != {k: k for k in mapping}
+    assert all(ds.catalog[a].type == ds.catalog[b].type for a, b in mapping.items())  # a permutation within types
+    assert relabel(arr, mapping).objects == [mapping[o] for o in arr.objects]
+    cfg = DataConfig(table_swap=1.0, mirror=1.0, object_shuffle=1.0)
+    ts = TrainEpisodes(ds, ds.participants, Vocab.from_dataset(ds), cfg, 8)
     s = ts[0]
     assert len(s["y_obj"]) == len(s["y_xy"]) and np.isfinite(s["y_feat"]).all()
 
