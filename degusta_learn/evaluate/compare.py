@@ -32,6 +32,10 @@ from degusta_learn.scene import (
 )
 
 
+class EpisodeSetMismatch(DegustaError):
+    """A method's predictions cover other episodes than the comparison's: the whole comparison is refused."""
+
+
 @dataclass
 class MethodEntry:
     """One row of the comparison: a predictions file, or a predict config to run."""
@@ -121,7 +125,7 @@ def _collect(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, ep_map: dict[s
     have, want = {p.episode for p in preds}, set(ep_map)
     if have != want:
         missing, extra = sorted(want - have), sorted(have - want)
-        raise DegustaError(
+        raise EpisodeSetMismatch(
             f"method {entry.name!r} was predicted on a different episode set: "
             f"{len(missing)} episodes missing (first: {missing[:1]}), {len(extra)} not in this comparison "
             f"(first: {extra[:1]}); compare methods on the same episodes")
@@ -160,9 +164,9 @@ def compare(cfg: CompareConfig, log=print) -> Path:
     for entry in cfg.methods:
         try:
             predictions[entry.name] = _collect(entry, cfg, ds, ep_map, pred_dir, log)
+        except EpisodeSetMismatch:
+            raise
         except DegustaError as e:
-            if "different episode set" in str(e):
-                raise
             log(f"[compare] {entry.name}: FAILED: {e}")
             failures[entry.name] = str(e)
     rows = [r for preds in predictions.values() for r in score_predictions(ds, preds, ep_map)]

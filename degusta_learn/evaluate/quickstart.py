@@ -27,7 +27,7 @@ import yaml
 from degusta_learn.config import apply_overrides, read_yaml
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_text
-from degusta_learn.scene import Episode, load_dataset, make_episodes, write_episodes
+from degusta_learn.scene import Episode, load_dataset, make_episodes, participants_in, write_episodes
 
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -49,17 +49,16 @@ def _config(name: str, out_dir: Path, overrides: list[str], command: str) -> Pat
 def quickstart_episodes(ds, seed: int = 0, per_participant: int = 1, participants: int | None = None) -> list[Episode]:
     """One (seeded) target per test participant at each context length: the same set for every method.
 
-    `participants` keeps only the first N test participants (sorted ids), to bound the VLM rows' time.
+    `participants` keeps only the first N test participants (sorted ids; None: all), to bound the VLM rows' time.
     """
-    keep = None if participants is None else set(sorted({e.participant for e in make_episodes(ds, 0, "test", seed)})[:participants])
+    keep = set(participants_in(ds, "test", seed)[:participants])
     chosen = []
     for k in (0, 2, 4):
         by_p: dict[str, list[Episode]] = {}
         for e in make_episodes(ds, k, "test", seed):
-            by_p.setdefault(e.participant, []).append(e)
+            if e.participant in keep:
+                by_p.setdefault(e.participant, []).append(e)
         for p, eps in sorted(by_p.items()):
-            if keep is not None and p not in keep:
-                continue
             rng = np.random.default_rng([seed, k, int.from_bytes(p.encode()[:8].ljust(8, b"\0"), "little") % 2**32])
             chosen += [eps[i] for i in sorted(rng.choice(len(eps), size=min(per_participant, len(eps)), replace=False))]
     return chosen
