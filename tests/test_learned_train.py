@@ -63,8 +63,8 @@ def test_checkpoint_round_trip_gives_identical_predictions(trained, tmp_path):
     model, hp = load_model(run / "last.ckpt")
     again, _ = load_model(run)  # a run folder -> best.ckpt
     episodes = make_episodes(ds, 2, "test")
-    a = predict_episodes(model, ds, episodes, hp["min_objects"])
-    b = predict_episodes(load_model(run / "last.ckpt")[0], ds, episodes, hp["min_objects"])
+    a = predict_episodes(model, ds, episodes, hp["population"], hp["min_objects"])
+    b = predict_episodes(load_model(run / "last.ckpt")[0], ds, episodes, hp["population"], hp["min_objects"])
     assert [p.to_json() for p in a] == [p.to_json() for p in b]
     assert all(len(p.placements) >= 3 for p in a) and again.cfg == model.cfg
     # through the registry, as `degusta predict` runs it (same thread count: float sums depend on it)
@@ -96,6 +96,10 @@ def test_checkpoint_of_another_kind_or_no_checkpoint_is_refused(trained, tmp_pat
     torch.save(ckpt, tmp_path / "other.ckpt")
     with pytest.raises(DegustaError, match="kind 'finetune', not a 'learned'"):
         load_model(tmp_path / "other.ckpt")
+    ckpt["hyper_parameters"].update(kind="learned", format=1)  # the autoregressive model of an older version
+    torch.save(ckpt, tmp_path / "old.ckpt")
+    with pytest.raises(DegustaError, match="format 1; this version reads format 2.*retrain"):
+        load_model(tmp_path / "old.ckpt")
     (tmp_path / "junk.ckpt").write_text("not a checkpoint")
     with pytest.raises(DegustaError, match="junk.ckpt: not a loadable"):
         load_model(tmp_path / "junk.ckpt")
@@ -119,7 +123,7 @@ def test_other_catalog_is_refused(trained, tmp_path):
     ("model.d_modle=8", "unknown key 'model.d_modle'"),
     ("model.d_model=big", "model.d_model: expected int"),
     ("data.context_lengths=[3]", "data.context_lengths"),
-    ("model.position_head=grid", "model.position_head"),
+    ("model.n_heads=3", "model.n_heads: 3 does not divide"),
     ("kind=finetune_typo", "unknown trainer kind"),
 ])
 def test_bad_config_names_the_key(tmp_path, override, message):

@@ -7,7 +7,7 @@ Usage:
 Steps (each prints what it does; a re-run reuses what an interrupted run finished):
   1. generate the SYNTHETIC naturalistic dataset;
   2. pick the episodes: 20 test participants, one target trial each, at context 0, 2 and 4 (60);
-  3. train the learned arrangement model (configs/learned_cpu.yaml, about 4 minutes);
+  3. train the learned slot model (configs/learned_cpu.yaml, about 2 minutes);
   4. fine-tune the tiny offline VLM with LoRA (CPU config; no pretrained weights exist offline);
   5. compare heuristic baselines, the oracle, the learned model, and the tiny VLM zero-shot and
      fine-tuned through the `hf` backend (plus zero-shot GPT-4o MOGMA with --with-api) in one report.
@@ -97,7 +97,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
                        "degusta predict")
         entries.append(MethodEntry(name=name, config=str(path)))
 
-    step("3/5 training the learned arrangement model (configs/learned_cpu.yaml)")
+    step("3/5 training the learned slot model (configs/learned_cpu.yaml)")
     ckpt = out / "checkpoints"
     learned = _config("learned_cpu", cfg_dir, [f"data.dataset={data_dir}", f"trainer.run_dir={ckpt}",
                                                "trainer.run_name=learned"] + (SMALL_LEARNED if small else QUICK_LEARNED),
@@ -137,7 +137,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
 
 # Sizes that keep the main job near 10 CPU minutes (the shipped configs train longer and score better).
 QUICK_PARTICIPANTS = 20
-QUICK_LEARNED: list[str] = []  # the shipped CPU config as it is (3 epochs, ~4 minutes)
+QUICK_LEARNED: list[str] = []  # the shipped CPU config as it is (3 epochs, ~2 minutes)
 SMALL_LEARNED = ["trainer.max_epochs=1", "data.repeats=1"]
 SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4"]
 

@@ -1,5 +1,6 @@
-"""Learned baseline: a transformer that reads a participant's context arrangements as object tokens and
-places the target arrangement object by object (see model.py for the architecture and why).
+"""Learned baseline: the slot model. The context arrangements are aligned into slots (slots.py); a
+transformer over the slots decides which the target gets, with which object, where and in which order
+(see slot_model.py for the architecture and why).
 
 Usage:
     degusta train --config configs/learned_cpu.yaml              # -> checkpoints/learned_cpu/
@@ -12,7 +13,7 @@ from degusta_learn.baselines.learned.predict import LearnedPredictConfig, load_m
 from degusta_learn.baselines.learned.train import LearnedTrainConfig, build, train
 from degusta_learn.methods import MethodSpec, TrainerSpec
 
-TRAINER = TrainerSpec(LearnedTrainConfig, train, "transformer arrangement model (PyTorch + Lightning)")
+TRAINER = TrainerSpec(LearnedTrainConfig, train, "slot model: a transformer over the participant's aligned context objects (PyTorch + Lightning)")
 METHOD = MethodSpec(LearnedPredictConfig, run, "a trained learned arrangement model (config key: checkpoint)")
 
 __all__ = ["METHOD", "TRAINER", "LearnedPredictConfig", "LearnedTrainConfig", "build", "load_model",

@@ -4,13 +4,12 @@ Context arrangements are visited in order; each one's objects are matched one-to
 groups found so far, by position relative to the surface bounds, requiring the same type and preferring
 the same object id (as the `consensus` baseline matches arrangements to its reference); objects left
 unmatched, or farther than `MAX_DIST` from every group of their type, start new groups. A group's position
-is the running mean of its members. The model gets each context token's group as an identity embedding
-(group numbers are shuffled during training, so only "same group or not" carries meaning) and the
-group's support (the fraction of context arrangements in it).
+is the running mean of its members. The groups are the slots of the slot model (slots.py); appending the
+target arrangement as one more arrangement tells which slots it sets (the training labels).
 
-This is an input feature, not a decision: the model still learns which groups to set, with which objects,
-where and in which order; the alignment only spares it from discovering correspondences across
-arrangements by attention alone, which a CPU-sized run does not manage (see docs/learned.md).
+The alignment is an input, not a decision: the model learns which slots to set, with which objects, where
+and in which order; the alignment spares it from discovering correspondences across arrangements by
+attention alone, which a CPU-sized token model did not manage (see docs/learned.md).
 
 Usage:
     group, support = align_context(context, tables, vocab)   # (N,), (N,) over the concatenated context

@@ -13,26 +13,29 @@ task intact:
 - object relabelling (`object_shuffle`, per episode): the catalog objects of each type are permuted, the
   same way in every arrangement of the episode — a participant with the same habits but other favourite
   objects. It stops the model from recognising a training participant by their objects and recalling
-  their target, and teaches it to take the objects from the context instead;
-- input jitter (`position_jitter`): noise on the teacher-forced *input* positions of placed objects (never
-  on the targets), so the decoder tolerates its own imprecise earlier placements.
+  their target, and teaches it to take the objects from the context instead.
 
 Validation episodes are the val participants' episodes at each of `val_context_lengths` (exactly as
 `make_episodes` builds them for `degusta predict`), unaugmented.
 
+Samples are made by `encode(context, target_table_id, target)` (the slot encoding, slots.py) and batched
+by `slots.collate_slots`.
+
 Usage:
-    dm = ArrangementDataModule(DataConfig(dataset="data/naturalistic"), ds, vocab, max_objects=16)
+    dm = ArrangementDataModule(DataConfig(dataset="data/naturalistic"), ds, encode)
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset as TorchDataset
 
-from degusta_learn.baselines.learned.features import Vocab, collate, encode_sample, onto_surface, position_features
+from degusta_learn.baselines.learned.features import onto_surface
+from degusta_learn.baselines.learned.slots import collate_slots
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import CONTEXT_LENGTHS, Arrangement, Dataset, Episode, Placement, make_episodes
 from degusta_learn.scene.episodes import split_participants
@@ -62,8 +65,6 @@ class DataConfig:
     """Probability, per episode, of mirroring every arrangement left-right."""
     object_shuffle: float = 0.5
     """Probability, per episode, of relabelling objects within each type (see the module docstring)."""
-    position_jitter: float = 0.005
-    """Std of noise on teacher-forced input positions (normalized units)."""
 
     def __post_init__(self):
         for key in ("context_lengths", "val_context_lengths"):
@@ -118,11 +119,14 @@ def shuffle_mapping(ds: Dataset, rng) -> dict[int, int]:
     return mapping
 
 
+Encoder = Callable[[list[Arrangement], int, Arrangement], dict]  # (context, target table id, target) -> sample
+
+
 class TrainEpisodes(TorchDataset):
     """Randomly drawn, augmented training episodes (numpy's global RNG, seeded by seed_everything)."""
 
-    def __init__(self, ds: Dataset, participants: list[str], vocab: Vocab, cfg: DataConfig, max_objects: int):
-        self.ds, self.vocab, self.cfg, self.max_objects = ds, vocab, cfg, max_objects
+    def __init__(self, ds: Dataset, participants: list[str], cfg: DataConfig, encode: Encoder):
+        self.ds, self.cfg, self.encode = ds, cfg, encode
         by_p = ds.by_participant()
         self.trials = {p: by_p[p] for p in participants}
         self.items = [(p, t, k) for p in participants for t in range(len(by_p[p]))
@@ -147,18 +151,14 @@ class TrainEpisodes(TorchDataset):
             episode = [swap_table(a, self.ds, int(rng.choice([x for x in self.table_ids if x != a.table])))
                        if rng.random() < cfg.table_swap else a for a in episode]
         target = episode[-1]
-        s = encode_sample(self.vocab, self.ds.tables, episode[:-1], target.table, target, self.max_objects, rng)
-        if cfg.position_jitter:
-            noisy = target.positions + rng.normal(0, cfg.position_jitter, size=target.positions.shape)
-            s["y_feat"] = position_features(self.ds.tables[target.table], noisy, target.rotations)
-        return s
+        return self.encode(episode[:-1], target.table, target)
 
 
 class ValEpisodes(TorchDataset):
     """The fixed validation episodes (with their targets, for the loss and the metrics)."""
 
-    def __init__(self, ds: Dataset, episodes: list[Episode], vocab: Vocab, max_objects: int):
-        self.ds, self.episodes, self.vocab, self.max_objects = ds, episodes, vocab, max_objects
+    def __init__(self, ds: Dataset, episodes: list[Episode], encode: Encoder):
+        self.ds, self.episodes, self.encode = ds, episodes, encode
 
     def __len__(self) -> int:
         return len(self.episodes)
@@ -167,7 +167,7 @@ class ValEpisodes(TorchDataset):
         e = self.episodes[i]
         target = self.ds.arrangement(e.participant, e.target)
         ctx = [self.ds.arrangement(e.participant, c) for c in e.context]
-        s = encode_sample(self.vocab, self.ds.tables, ctx, target.table, target, self.max_objects)
+        s = self.encode(ctx, target.table, target)
         s["index"] = i
         return s
 
@@ -175,23 +175,23 @@ class ValEpisodes(TorchDataset):
 class ArrangementDataModule(L.LightningDataModule):
     """Train / val loaders over a loaded dataset (the split is by participant, `cfg.split_seed`)."""
 
-    def __init__(self, cfg: DataConfig, ds: Dataset, vocab: Vocab, max_objects: int):
+    def __init__(self, cfg: DataConfig, ds: Dataset, encode: Encoder):
         super().__init__()
-        self.cfg, self.ds, self.vocab, self.max_objects = cfg, ds, vocab, max_objects
+        self.cfg, self.ds = cfg, ds
         split = split_of(ds, cfg.split_seed, cfg.dataset)
         self.train_participants = split["train"]
         self.val_episodes = [e for k in cfg.val_context_lengths for e in make_episodes(ds, k, "val", cfg.split_seed)]
-        self.train_set = TrainEpisodes(ds, self.train_participants, vocab, cfg, max_objects)
-        self.val_set = ValEpisodes(ds, self.val_episodes, vocab, max_objects)
+        self.train_set = TrainEpisodes(ds, self.train_participants, cfg, encode)
+        self.val_set = ValEpisodes(ds, self.val_episodes, encode)
         if not len(self.train_set):
             raise DegustaError(f"{cfg.dataset}: no training episodes (train participants need more trials "
                                f"than the context lengths {cfg.context_lengths})")
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(self.train_set, batch_size=self.cfg.batch_size, shuffle=True, collate_fn=collate,
+        return DataLoader(self.train_set, batch_size=self.cfg.batch_size, shuffle=True, collate_fn=collate_slots,
                           num_workers=self.cfg.num_workers, persistent_workers=self.cfg.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(self.val_set, batch_size=max(self.cfg.batch_size, 64), shuffle=False,
-                          collate_fn=collate, num_workers=self.cfg.num_workers,
+                          collate_fn=collate_slots, num_workers=self.cfg.num_workers,
                           persistent_workers=self.cfg.num_workers > 0)

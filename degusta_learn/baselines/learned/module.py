@@ -1,18 +1,19 @@
 """LightningModule of the learned arrangement model: losses, optimizer, validation by real decoding.
 
-Training minimizes the teacher-forced loss of `ArrangementModel.loss`. Validation does two things on the
-val participants' episodes: the same loss (`val/loss`), and a full greedy prediction of every episode
+Training minimizes `SlotModel.loss`. Validation does two things on the
+val participants' episodes: the same loss (`val/loss`), and a full prediction of every episode
 scored with `degusta_learn.metrics.score_prediction` exactly as `degusta evaluate` would — logged as
 `val/rmsd`, `val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`,
 `val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Sums are reduced across devices, so the
 numbers are exact under DDP.
 
-Hyperparameters are saved as plain dicts (model config, optimizer config, vocabulary) plus
-`kind: "learned"`, so checkpoints load with `torch.load(..., weights_only=True)` and a checkpoint of
+Hyperparameters are saved as plain data (model config, optimizer config, vocabulary, the population rows
+used at context 0 as [table id, rows] pairs) plus `kind: "learned"` and `format`, so checkpoints load with `torch.load(..., weights_only=True)` and a checkpoint of
 another model kind is recognized (see predict.py).
 
 Usage:
-    module = LearnedModule(model=asdict(ModelConfig()), optim=asdict(OptimConfig()), vocab=vocab.to_dict())
+    module = LearnedModule(model=asdict(ModelConfig()), optim=asdict(OptimConfig()), vocab=vocab.to_dict(),
+                           population=population_pairs(population_rows(ds)))
 """
 
 from __future__ import annotations
@@ -23,15 +24,19 @@ from dataclasses import dataclass
 import lightning as L
 import torch
 
-from degusta_learn.baselines.learned.decode import greedy_decode
 from degusta_learn.baselines.learned.features import Vocab, onto_surface
-from degusta_learn.baselines.learned.model import ArrangementModel, ModelConfig
+from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
 from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import score_prediction
 from degusta_learn.scene import Placement
 
 KIND = "learned"
-FORMAT = 1
+FORMAT = 2  # 1: the autoregressive token model (before the slot model); refused by predict.load_model
+
+
+def population_pairs(population: dict) -> list:
+    """{table id: rows} -> [[table id, rows], ...] (plain lists, safe for weights-only checkpoints)."""
+    return [[int(t), rows] for t, rows in sorted(population.items())]
 
 
 @dataclass
@@ -55,11 +60,12 @@ class OptimConfig:
 
 
 class LearnedModule(L.LightningModule):
-    def __init__(self, model: dict, optim: dict, vocab: dict, min_objects: int = 1, kind: str = KIND,
-                 format: int = FORMAT):
+    def __init__(self, model: dict, optim: dict, vocab: dict, population: list, min_objects: int = 1,
+                 kind: str = KIND, format: int = FORMAT):
         super().__init__()
         self.save_hyperparameters()
-        self.model = ArrangementModel(ModelConfig(**model), Vocab(**vocab))
+        self.model = SlotModel(ModelConfig(**model), Vocab(**vocab))
+        self.population = {int(t): rows for t, rows in population}
         self.optim_cfg = OptimConfig(**optim)
         self.min_objects = min_objects
         self._val: list[torch.Tensor] = []
@@ -79,7 +85,7 @@ class LearnedModule(L.LightningModule):
         self.log_dict({f"val/{'loss' if k == 'loss' else 'loss_' + k}": v for k, v in losses.items()},
                       batch_size=len(batch["tgt_table"]), sync_dist=True)
         dm = self.trainer.datamodule
-        objs, xys, rots = greedy_decode(self.model, batch, self.min_objects)
+        objs, xys, rots = self.model.decode(batch, self.min_objects)
         ids = [o["id"] for o in self.model.vocab.catalog]
         for i, rows, xy, rot in zip(batch["index"].tolist(), objs, xys, rots):
             e = dm.val_episodes[i]

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
-from degusta_learn.baselines.learned.decode import greedy_decode
-from degusta_learn.baselines.learned.features import Vocab, collate, encode_sample, onto_surface
-from degusta_learn.baselines.learned.model import ArrangementModel, ModelConfig
-from degusta_learn.baselines.learned.module import KIND
+from degusta_learn.baselines.learned.features import Vocab, onto_surface
+from degusta_learn.baselines.learned.module import FORMAT, KIND
+from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
+from degusta_learn.baselines.learned.slots import SlotEncoder, collate_slots
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import PredictConfig
 from degusta_learn.scene import Dataset, Episode, Placement, Prediction
@@ -56,8 +56,9 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return path
 
 
-def load_model(path: str | Path, device: str = "cpu") -> tuple[ArrangementModel, dict]:
-    """Load a learned-model checkpoint weights-only; returns (model in eval mode, hyperparameters)."""
+def load_model(path: str | Path, device: str = "cpu") -> tuple[SlotModel, dict]:
+    """Load a learned-model checkpoint weights-only; returns (model in eval mode, hyperparameters with
+    "population" as {table id: rows})."""
     ckpt_path = resolve_checkpoint(path)
     try:
         ckpt = torch.load(ckpt_path, map_location=device, weights_only=True)
@@ -69,16 +70,27 @@ def load_model(path: str | Path, device: str = "cpu") -> tuple[ArrangementModel,
     if kind != KIND:
         raise DegustaError(f"{ckpt_path}: a checkpoint of kind {kind!r}, not a {KIND!r} arrangement model "
                            f"(use the predict config of the method that trained it)")
-    model = ArrangementModel(ModelConfig(**hp["model"]), Vocab(**hp["vocab"]))
+    if hp.get("format") != FORMAT:
+        raise DegustaError(f"{ckpt_path}: a learned-model checkpoint of format {hp.get('format')!r}; this version "
+                           f"reads format {FORMAT} (the slot model): retrain it with `degusta train`")
+    model = SlotModel(ModelConfig(**hp["model"]), Vocab(**hp["vocab"]))
+    hp = {**hp, "population": {int(t): rows for t, rows in hp["population"]}}
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    model.load_state_dict(state)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:  # weights that do not fit this version's model
+        raise DegustaError(f"{ckpt_path}: its weights do not fit this version's slot model "
+                           f"({str(e).splitlines()[-1].strip()[:200]}); retrain it with `degusta train`") from None
     return model.to(device).eval(), hp
 
 
-def predict_episodes(model: ArrangementModel, ds: Dataset, episodes: list[Episode], min_objects: int = 1,
-                     batch_size: int = 64, method: str = KIND, diagnostics: dict | None = None) -> list[Prediction]:
-    """Greedy predictions for `episodes` (one Prediction each, placements on the target table's surface)."""
+def predict_episodes(model: SlotModel, ds: Dataset, episodes: list[Episode], population: dict,
+                     min_objects: int = 1, batch_size: int = 64, method: str = KIND,
+                     diagnostics: dict | None = None) -> list[Prediction]:
+    """Predictions for `episodes` (one Prediction each, placements on the target table's surface);
+    `population`: {table id: rows}, the checkpoint's population rows (used at context 0)."""
     device = next(model.parameters()).device
+    encode = SlotEncoder(model.vocab, ds.tables, population, model.cfg.max_objects)
     ids = [o["id"] for o in model.vocab.catalog]
     out = []
     for start in range(0, len(episodes), batch_size):
@@ -87,9 +99,9 @@ def predict_episodes(model: ArrangementModel, ds: Dataset, episodes: list[Episod
         for e in chunk:
             table = ds.arrangement(e.participant, e.target).table
             ctx = [ds.arrangement(e.participant, c) for c in e.context]
-            samples.append(encode_sample(model.vocab, ds.tables, ctx, table, None, model.cfg.max_objects))
-        batch = {k: v.to(device) for k, v in collate(samples).items()}
-        for e, rows, xy, rot in zip(chunk, *greedy_decode(model, batch, min_objects)):
+            samples.append(encode(ctx, table))
+        batch = {k: v.to(device) for k, v in collate_slots(samples).items()}
+        for e, rows, xy, rot in zip(chunk, *model.decode(batch, min_objects)):
             table = ds.arrangement(e.participant, e.target).table
             xy = onto_surface(ds.tables[table], xy)
             placements = [Placement(ids[r], float(x), float(y), float(a)) for r, (x, y), a in zip(rows, xy, rot)]
@@ -106,5 +118,5 @@ def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list
     model, hp = load_model(cfg.checkpoint, cfg.device)
     model.vocab.check_catalog(ds.catalog, f"{cfg.dataset}/catalog.json")
     with torch.no_grad():
-        return predict_episodes(model, ds, episodes, hp.get("min_objects", 1), cfg.batch_size,
+        return predict_episodes(model, ds, episodes, hp["population"], hp.get("min_objects", 1), cfg.batch_size,
                                 diagnostics={"checkpoint": str(resolve_checkpoint(cfg.checkpoint))})

@@ -16,10 +16,11 @@ from pathlib import Path
 
 import torch
 
-from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig
+from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig, split_of
 from degusta_learn.baselines.learned.features import Vocab
-from degusta_learn.baselines.learned.model import ModelConfig
-from degusta_learn.baselines.learned.module import KIND, LearnedModule, OptimConfig
+from degusta_learn.baselines.learned.module import KIND, LearnedModule, OptimConfig, population_pairs
+from degusta_learn.baselines.learned.slot_model import ModelConfig
+from degusta_learn.baselines.learned.slots import SlotEncoder, population_rows
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import Dataset, load_dataset
 from degusta_learn.trainer import TrainerConfig, fit
@@ -47,9 +48,11 @@ def build(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> tuple[LearnedMo
     """The LightningModule and DataModule of `cfg` (loads `cfg.data.dataset` unless `ds` is given)."""
     ds = ds if ds is not None else load_dataset(cfg.data.dataset)
     vocab = Vocab.from_dataset(ds)
-    dm = ArrangementDataModule(cfg.data, ds, vocab, cfg.model.max_objects)
+    split_of(ds, cfg.data.split_seed, cfg.data.dataset)  # a clear error before the population needs a split
+    population = population_rows(ds, cfg.data.split_seed)
+    dm = ArrangementDataModule(cfg.data, ds, SlotEncoder(vocab, ds.tables, population, cfg.model.max_objects))
     module = LearnedModule(model=asdict(cfg.model), optim=asdict(cfg.optim), vocab=vocab.to_dict(),
-                           min_objects=int(ds.meta.get("min_objects", 3)))
+                           population=population_pairs(population), min_objects=int(ds.meta.get("min_objects", 3)))
     return module, dm
 
 
