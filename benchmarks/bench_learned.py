@@ -24,7 +24,9 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from degusta_learn.methods import get_method  # noqa: E402
-from degusta_learn.metrics import THRESHOLDS, bootstrap_ci, fraction_acceptable, score_many  # noqa: E402
+from degusta_learn.metrics import (  # noqa: E402
+    THRESHOLDS, bootstrap_ci, fraction_acceptable, paired_bootstrap, score_many,
+)
 from degusta_learn.scene import load_dataset, make_episodes  # noqa: E402
 
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
@@ -51,10 +53,10 @@ def main():
     args = parser.parse_args()
     ds = load_dataset(args.dataset)
     print(f"# {ds.label}, split {args.split}, checkpoint {args.checkpoint}\n")
-    print("| method | context | object accuracy | Kabsch RMSD | unregistered RMSD | count error "
+    print("| method | context | object accuracy | Kabsch RMSD | median RMSD | unregistered RMSD | count error "
           "| acc@0.01 | acc@0.05 | acc@0.10 |")
-    print("|---|---:|---|---|---|---|---:|---:|---:|")
-    means, seconds = {}, {}
+    print("|---|---:|---|---|---:|---|---|---:|---:|---:|")
+    means, seconds, per_episode = {}, {}, {}
     for k in (0, 2, 4):
         episodes = make_episodes(ds, k, args.split, 0)
         gts = [ds.arrangement(e.participant, e.target) for e in episodes]
@@ -63,9 +65,10 @@ def main():
             preds, seconds[name, k] = predict(name, ds, episodes, args.split, extra)
             scores = score_many(ds.catalog, gts, preds)
             rmsd = [s.rmsd for s in scores]
+            per_episode[name, k] = (np.array(rmsd), np.array([s.object_accuracy for s in scores]))
             ok = fraction_acceptable(rmsd)
             means[name, k] = float(np.nanmean(rmsd))
-            print(f"| {name} | {k} | {_ci([s.object_accuracy for s in scores])} | {_ci(rmsd)} | "
+            print(f"| {name} | {k} | {_ci([s.object_accuracy for s in scores])} | {_ci(rmsd)} | {np.nanmedian(rmsd):.3f} | "
                   f"{_ci([s.rmsd_unregistered for s in scores])} | {_ci([s.count_error for s in scores], 2)} | "
                   + " | ".join(f"{ok[t]:.3f}" for t in THRESHOLDS) + " |")
     print(f"\n{len(episodes)} {args.split} episodes per context length.")
@@ -74,6 +77,19 @@ def main():
         print(f"context {k}: learned / oracle RMSD = {means['learned', k] / o:.2f}x; consensus / oracle = "
               f"{means['consensus', k] / o:.2f}x; copy_nearest / oracle = {means['copy_nearest', k] / o:.2f}x; "
               f"learned predicted {len(episodes)} episodes in {seconds['learned', k]:.1f} s")
+    print("\nPaired differences learned - baseline (mean [95% CI], two-sided p); RMSD: negative = learned better, "
+          "object accuracy: positive = learned better.\n")
+    print("| context | baseline | RMSD difference | p | object accuracy difference | p |")
+    print("|---:|---|---|---:|---|---:|")
+    for k in (0, 2, 4):
+        for name in ("consensus", "copy_nearest", "population_mean"):
+            ours, theirs = per_episode["learned", k], per_episode[name, k]
+            both = ~np.isnan(ours[0]) & ~np.isnan(theirs[0])
+            d_rmsd = paired_bootstrap(ours[0][both], theirs[0][both])
+            d_acc = paired_bootstrap(ours[1], theirs[1])
+            print(f"| {k} | {name} | {d_rmsd['diff']:+.4f} [{d_rmsd['lo']:+.4f}, {d_rmsd['hi']:+.4f}] | "
+                  f"{d_rmsd['p_value']:.3f} | {d_acc['diff']:+.3f} [{d_acc['lo']:+.3f}, {d_acc['hi']:+.3f}] | "
+                  f"{d_acc['p_value']:.3f} |")
 
 
 if __name__ == "__main__":

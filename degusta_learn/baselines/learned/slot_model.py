@@ -48,11 +48,13 @@ from scipy.optimize import linear_sum_assignment
 from torch import nn
 
 from degusta_learn.baselines.learned.features import GEOM_DIM, Vocab, fourier
-from degusta_learn.baselines.learned.slots import SLOT_DIM
+from degusta_learn.baselines.learned.slots import SLOT_DIM, SLOT_FEATURES
 from degusta_learn.errors import DegustaError
 
 N_FREQ = 4
 RESIDUAL_SCALE = 0.05  # the position head's output x this = residual in normalized table units
+POSITION = slice(SLOT_FEATURES.index("u"), SLOT_FEATURES.index("dy") + 1)  # u, v, dx, dy: Fourier-encoded
+CONTEXT = SLOT_FEATURES.index("k / 4")
 
 
 @dataclass
@@ -132,7 +134,7 @@ class SlotModel(nn.Module):
         feat, mask = batch["slot_feat"], batch["slot_mask"]
         votes = batch["slot_votes"]  # (B, S, O)
         members = votes.sum(-1, keepdim=True).clamp(min=1.0)
-        x = (self.slot_in(torch.cat([feat, fourier(feat[..., 4:8], N_FREQ)], -1)) + self.type_emb(batch["slot_type"])
+        x = (self.slot_in(torch.cat([feat, fourier(feat[..., POSITION], N_FREQ)], -1)) + self.type_emb(batch["slot_type"])
              + self.votes_in((votes / members) @ E))  # (B, S, d)
         tgt = self.table_id(batch["tgt_table"]) + self.table_geom(batch["tgt_geom"])  # (B, d)
         x = torch.cat([tgt[:, None], x], 1)
@@ -142,7 +144,7 @@ class SlotModel(nn.Module):
         # object choice: embedding match + copy features, restricted to the slot's type
         same_type = self.codes[:, 0][None, None] == batch["slot_type"][..., None]  # (B, S, O)
         type_votes = (votes * mask[..., None]).sum(1)  # (B, O) votes in every slot
-        k = batch["slot_feat"][..., 11:12].clamp(min=0.25) * 4  # context arrangements (>= 1)
+        k = feat[..., CONTEXT:CONTEXT + 1].clamp(min=0.25) * 4  # context arrangements (population: 1)
         copy_feat = torch.cat([torch.stack([votes / members, batch["share"][:, None].expand_as(votes),
                                             (type_votes[:, None] - votes) / k], -1),
                                batch["taste"][:, None].expand(*votes.shape, 2)], -1)  # (B, S, O, 5)

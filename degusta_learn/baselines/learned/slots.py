@@ -97,6 +97,26 @@ class SlotEncoder:
         return encode_slots(self.vocab, self.tables, context, target_table, self.population, target, self.max_objects)
 
 
+def carry(ctx: list[Arrangement], groups: list[np.ndarray], n_slots: int, tables: dict[int, Table], table: Table
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Slot positions carried onto `table` (module docstring): (slot_xy (S, 2), the layout anchor (2,) on
+    `table`, every member's registered position (M, 2), the slot means in the registered frame (S, 2))."""
+    ctx_xy = [a.positions for a in ctx]
+    shift = register(ctx_xy, groups, n_slots)
+    g = np.concatenate(groups)
+    pts = np.concatenate([p + s for p, s in zip(ctx_xy, shift)])
+    mean = np.zeros((n_slots, 2))
+    np.add.at(mean, g, pts)
+    mean /= np.bincount(g, minlength=n_slots)[:, None]
+    # the layout's centre goes where the context centres sit relative to their surface bounds
+    rel_centre = np.mean([(a.positions.mean(0) - _bounds(tables[a.table])[0]) / _bounds(tables[a.table])[1]
+                          for a in ctx], axis=0)
+    lo, size = _bounds(table)
+    anchor = lo + rel_centre * size
+    centre = np.mean([(p + s).mean(0) for p, s in zip(ctx_xy, shift)], axis=0)
+    return mean - centre + anchor, anchor, pts, mean
+
+
 def encode_slots(vocab: Vocab, tables: dict[int, Table], context: list[Arrangement], target_table: int,
                  population: dict, target: Arrangement | None = None, max_objects: int = 20) -> dict[str, np.ndarray]:
     """Slot arrays for one episode (`target` None at prediction time).
@@ -126,21 +146,10 @@ def encode_slots(vocab: Vocab, tables: dict[int, Table], context: list[Arrangeme
     if n_slots == 0:
         raise DegustaError(f"no objects to build slots from for table {target_table} (empty context and no "
                            "population rows for this table)")
-    ctx_xy = [a.positions for a in ctx]
-    shift = register(ctx_xy, ctx_groups, n_slots)
+    slot_xy, anchor, pts, mean = carry(ctx, ctx_groups, n_slots, tables, table)
     g = np.concatenate(ctx_groups)
-    pts = np.concatenate([p + s for p, s in zip(ctx_xy, shift)])
     members = np.bincount(g, minlength=n_slots).astype(float)
-    mean = np.zeros((n_slots, 2))
-    np.add.at(mean, g, pts)
-    mean /= members[:, None]
-    # where the layout's centre goes: the context centres' mean position relative to their bounds
-    rel_centre = np.mean([(a.positions.mean(0) - _bounds(tables[a.table])[0]) / _bounds(tables[a.table])[1]
-                          for a in ctx], axis=0)
     lo, size = _bounds(table)
-    anchor = lo + rel_centre * size
-    centre = np.mean([(p + s).mean(0) for p, s in zip(ctx_xy, shift)], axis=0)
-    slot_xy = mean - centre + anchor
     spread = np.sqrt(np.bincount(g, weights=((pts - mean[g]) ** 2).sum(1), minlength=n_slots) / members)
     rows = np.concatenate([vocab.rows(a.objects) for a in ctx])
     votes = np.zeros((n_slots, vocab.n_objects), dtype=np.float32)
@@ -181,25 +190,34 @@ def encode_slots(vocab: Vocab, tables: dict[int, Table], context: list[Arrangeme
            "tgt_table": np.int64(vocab.table_index.get(target_table, len(vocab.tables))),
            "tgt_geom": table_geometry(table)}
     if target is not None:
-        if len(target.placements) > max_objects:
-            raise DegustaError(f"participant {target.participant!r} trial {target.trial}: {len(target.placements)} "
-                               f"objects, more than model.max_objects={max_objects}")
-        y_set = np.zeros(n_slots, dtype=np.float32)
-        y_obj = np.full(n_slots, -1, dtype=np.int64)
-        y_xy = slot_xy.astype(np.float32).copy()
-        y_rot = np.zeros(n_slots, dtype=np.float32)
-        y_step = np.zeros(n_slots, dtype=np.float32)
-        tg = groups[len(ctx)] if target.placements else np.zeros(0, dtype=np.int64)
-        inside = tg < n_slots
-        idx = np.nonzero(inside)[0]
-        y_set[tg[idx]] = 1.0
-        y_obj[tg[idx]] = vocab.rows([target.objects[i] for i in idx])
-        y_xy[tg[idx]] = target.positions[idx]
-        y_rot[tg[idx]] = np.deg2rad(target.rotations[idx])
-        y_step[tg[idx]] = idx / max_objects
-        out.update(y_set=y_set, y_obj=y_obj, y_xy=y_xy, y_rot=y_rot, y_step=y_step,
-                   y_missed=np.int64((~inside).sum()))
+        out.update(labels(vocab, target, groups[len(ctx)] if target.placements else np.zeros(0, dtype=np.int64),
+                          slot_xy, max_objects))
     return out
+
+
+def labels(vocab: Vocab, target: Arrangement, target_slots: np.ndarray, slot_xy: np.ndarray, max_objects: int
+           ) -> dict[str, np.ndarray]:
+    """Training labels per slot from the target's alignment (`target_slots`: slot of each target object;
+    a number >= len(slot_xy) is a slot the context never showed): y_set, y_obj (-1 unset), y_xy (unset
+    slots keep their carried position), y_rot (radians), y_step, and y_missed (objects in no slot)."""
+    if len(target.placements) > max_objects:
+        raise DegustaError(f"participant {target.participant!r} trial {target.trial}: {len(target.placements)} "
+                           f"objects, more than model.max_objects={max_objects}")
+    n_slots = len(slot_xy)
+    y_set = np.zeros(n_slots, dtype=np.float32)
+    y_obj = np.full(n_slots, -1, dtype=np.int64)
+    y_xy = slot_xy.astype(np.float32).copy()
+    y_rot = np.zeros(n_slots, dtype=np.float32)
+    y_step = np.zeros(n_slots, dtype=np.float32)
+    idx = np.nonzero(target_slots < n_slots)[0]
+    at = target_slots[idx]
+    y_set[at] = 1.0
+    y_obj[at] = vocab.rows([target.objects[i] for i in idx])
+    y_xy[at] = target.positions[idx]
+    y_rot[at] = np.deg2rad(target.rotations[idx])
+    y_step[at] = idx / max_objects
+    return {"y_set": y_set, "y_obj": y_obj, "y_xy": y_xy, "y_rot": y_rot, "y_step": y_step,
+            "y_missed": np.int64(len(target_slots) - len(idx))}
 
 
 def _taste(vocab: Vocab, rows: np.ndarray) -> np.ndarray:
