@@ -75,3 +75,14 @@ def test_collate_pads_slots(small_dataset):
     B, S = batch["slot_mask"].shape
     assert B == 3 and batch["slot_votes"].shape[:2] == (B, S) and batch["taste"].shape == (B, batch["share"].shape[1], 2)
     assert (batch["y_obj"][~batch["slot_mask"]] == -1).all()
+
+
+def test_a_table_unseen_in_training_gets_the_all_tables_population(small_dataset):
+    ds = small_dataset
+    vocab, encode = encoder(ds)
+    new = replace(ds.tables[0], id=99, surface=((0.1, 0.2), (0.9, 0.2), (0.9, 0.8), (0.1, 0.8)))
+    encode.tables = {**ds.tables, 99: new}
+    s = encode([], 99)
+    rows = population_rows(ds)[-1]
+    assert len(s["slot_feat"]) == len(rows) and int(s["tgt_table"]) == len(vocab.tables)  # the "unknown table" row
+    assert new.contains(s["slot_xy"][:, 0], s["slot_xy"][:, 1]).all()
