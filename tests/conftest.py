@@ -34,3 +34,14 @@ def small_dataset() -> Dataset:
 @pytest.fixture
 def small_dataset_dir(tmp_path, small_dataset):
     return save_dataset(small_dataset, tmp_path / "small")
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Two torch threads on a shared 2-core machine oversubscribe badly; tiny models run best on one."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -15,14 +15,7 @@ from degusta_learn.baselines.learned.slots import SlotEncoder, collate_slots, po
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import make_episodes
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Two threads on a shared 2-core machine oversubscribe badly; tiny models run best on one."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 
 def tiny(vocab, **kw) -> SlotModel:

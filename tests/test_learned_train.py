@@ -12,13 +12,7 @@ from degusta_learn.scene import (
     CatalogObject, Dataset, load_dataset, make_episodes, read_predictions, save_dataset,
 )
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 
 def tiny_config(tmp_path, dataset="unused", **trainer) -> dict:
