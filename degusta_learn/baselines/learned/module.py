@@ -1,15 +1,16 @@
 """LightningModule of the learned arrangement model: losses, optimizer, validation by real decoding.
 
-Training minimizes `SlotModel.loss`. Validation does two things on the
-val participants' episodes: the same loss (`val/loss`), and a full prediction of every episode
+Training minimizes `SlotModel.loss`. Validation does two things on the val participants' episodes: the
+same loss (`val/loss`), and a full prediction of every episode
 scored with `degusta_learn.metrics.score_prediction` exactly as `degusta evaluate` would — logged as
 `val/rmsd`, `val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`,
 `val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Sums are reduced across devices, so the
 numbers are exact under DDP.
 
 Hyperparameters are saved as plain data (model config, optimizer config, vocabulary, the population rows
-used at context 0 as [table id, rows] pairs) plus `kind: "learned"` and `format`, so checkpoints load with `torch.load(..., weights_only=True)` and a checkpoint of
-another model kind is recognized (see predict.py).
+used at context 0 as [table id, rows] pairs) plus `kind: "learned"` and `format`, so checkpoints load
+with `torch.load(..., weights_only=True)` and a checkpoint of another model kind or an older format is
+recognized (see predict.py).
 
 Usage:
     module = LearnedModule(model=asdict(ModelConfig()), optim=asdict(OptimConfig()), vocab=vocab.to_dict(),
@@ -65,7 +66,6 @@ class LearnedModule(L.LightningModule):
         super().__init__()
         self.save_hyperparameters()
         self.model = SlotModel(ModelConfig(**model), Vocab(**vocab))
-        self.population = {int(t): rows for t, rows in population}
         self.optim_cfg = OptimConfig(**optim)
         self.min_objects = min_objects
         self._val: list[torch.Tensor] = []
