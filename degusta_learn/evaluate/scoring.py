@@ -1,8 +1,8 @@
 """Score predictions episode by episode: the rows of per_episode.csv.
 
-Every method's predictions are scored the same way (degusta_learn.metrics.score_prediction against
-the held-out target arrangement of the dataset), so zero-shot, baseline and fine-tuned methods are
-compared on equal terms.
+Every method's predictions are scored the same way (degusta_learn.metrics.score_many, equal to
+score_prediction on each, against the held-out target arrangement of the dataset), so zero-shot, baseline
+and fine-tuned methods are compared on equal terms.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import re
 from dataclasses import asdict, dataclass
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.metrics import score_prediction
+from degusta_learn.metrics import score_many
 from degusta_learn.scene import Dataset, Episode, Prediction
 
 _CONTEXT_IN_ID = re.compile(r"/k(\d+)$")
@@ -55,14 +55,15 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
         episodes: the episode set, if known; gives context length and task. Without it the context
             length is read from ids of the form ``.../kN`` and the task is "unknown".
     """
-    rows = []
     for pred in predictions:
         ep = episodes.get(pred.episode) if episodes else None
         if ep is not None and (ep.participant, ep.target) != (pred.participant, pred.target):
             raise DegustaError(f"prediction for episode {pred.episode!r} names participant {pred.participant!r} "
                                f"trial {pred.target}, but the episode's target is {ep.participant!r} trial {ep.target}")
-        gt = ds.arrangement(pred.participant, pred.target)
-        score = score_prediction(ds.catalog, gt, pred.placements, failed=pred.failed)
+    gts = [ds.arrangement(pred.participant, pred.target) for pred in predictions]
+    rows = []
+    for pred, score in zip(predictions, score_many(ds.catalog, gts, predictions)):
+        ep = episodes.get(pred.episode) if episodes else None
         if ep is not None:
             context, task = len(ep.context), ep.task
         else:
