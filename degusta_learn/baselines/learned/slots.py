@@ -37,17 +37,13 @@ from degusta_learn.baselines.learned.features import Vocab, table_geometry
 from degusta_learn.errors import DegustaError
 from degusta_learn.baselines.heuristic import PopulationModel
 from degusta_learn.scene import Arrangement, Dataset, Placement, Table
+from degusta_learn.synth.geometry import to_relative, to_table
 
 SLOT_FEATURES = ("support", "population", "members / 4", "mean step / max_objects", "u", "v", "dx", "dy",
                  "spread", "top vote share", "distinct objects / members", "k / 4", "median count / max_objects",
                  "well-supported slots of its type / 4")
 SLOT_DIM = len(SLOT_FEATURES)
 REGISTER_ROUNDS = 3
-
-
-def _bounds(table: Table) -> tuple[np.ndarray, np.ndarray]:
-    x0, y0, x1, y1 = table.bounds
-    return np.array([x0, y0]), np.maximum(np.array([x1 - x0, y1 - y0]), 1e-6)
 
 
 def register(xy: list[np.ndarray], groups: list[np.ndarray], n_groups: int) -> list[np.ndarray]:
@@ -68,9 +64,9 @@ def register(xy: list[np.ndarray], groups: list[np.ndarray], n_groups: int) -> l
 def population_context(population: dict, table: Table) -> Arrangement:
     """The population's mean arrangement on `table` as a pseudo context arrangement (trial -1)."""
     rows = population.get(table.id) or population.get(-1) or []
-    lo, size = _bounds(table)
+    xy = to_table(table, np.array([[u, v] for _, u, v, _ in rows]).reshape(-1, 2))
     return Arrangement("population", -1, table.id, tuple(
-        Placement(int(o), float(lo[0] + u * size[0]), float(lo[1] + v * size[1]), float(r)) for o, u, v, r in rows))
+        Placement(int(row[0]), float(x), float(y), float(row[3])) for row, (x, y) in zip(rows, xy)))
 
 
 def population_rows(ds: Dataset, seed: int = 0) -> dict[int, list[list[float]]]:
@@ -109,10 +105,8 @@ def carry(ctx: list[Arrangement], groups: list[np.ndarray], n_slots: int, tables
     np.add.at(mean, g, pts)
     mean /= np.bincount(g, minlength=n_slots)[:, None]
     # the layout's centre goes where the context centres sit relative to their surface bounds
-    rel_centre = np.mean([(a.positions.mean(0) - _bounds(tables[a.table])[0]) / _bounds(tables[a.table])[1]
-                          for a in ctx], axis=0)
-    lo, size = _bounds(table)
-    anchor = lo + rel_centre * size
+    rel_centre = np.mean([to_relative(tables[a.table], a.positions.mean(0)) for a in ctx], axis=0)
+    anchor = to_table(table, rel_centre)
     centre = np.mean([(p + s).mean(0) for p, s in zip(ctx_xy, shift)], axis=0)
     return mean - centre + anchor, anchor, pts, mean
 
@@ -149,7 +143,7 @@ def encode_slots(vocab: Vocab, tables: dict[int, Table], context: list[Arrangeme
     slot_xy, anchor, pts, mean = carry(ctx, ctx_groups, n_slots, tables, table)
     g = np.concatenate(ctx_groups)
     members = np.bincount(g, minlength=n_slots).astype(float)
-    lo, size = _bounds(table)
+    uv = to_relative(table, slot_xy) * 2 - 1
     spread = np.sqrt(np.bincount(g, weights=((pts - mean[g]) ** 2).sum(1), minlength=n_slots) / members)
     rows = np.concatenate([vocab.rows(a.objects) for a in ctx])
     votes = np.zeros((n_slots, vocab.n_objects), dtype=np.float32)
@@ -170,8 +164,8 @@ def encode_slots(vocab: Vocab, tables: dict[int, Table], context: list[Arrangeme
         np.full(n_slots, float(is_population)),
         members / 4.0,
         mean_step / max_objects,
-        (slot_xy[:, 0] - lo[0]) / size[0] * 2 - 1,
-        (slot_xy[:, 1] - lo[1]) / size[1] * 2 - 1,
+        uv[:, 0],
+        uv[:, 1],
         slot_xy[:, 0] - anchor[0],
         slot_xy[:, 1] - anchor[1],
         spread,
