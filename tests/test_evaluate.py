@@ -6,6 +6,8 @@ import json
 import pytest
 
 from degusta_learn.cli import main
+from degusta_learn.evaluate.summary import DEGENERATE_MARK, rank_methods
+from degusta_learn.metrics import SET_PENALTY
 from degusta_learn.scene import Placement, Prediction, load_dataset, make_episodes, write_episodes, write_predictions
 
 
@@ -33,8 +35,13 @@ def test_perfect_and_shifted_and_failing_methods(small_dataset_dir, tmp_path, ca
     metrics = json.loads((out / "metrics.json").read_text())
     perfect, shifted = metrics["perfect"], metrics["shifted"]
     assert set(perfect) >= {"n_episodes", "failure_rate", "object_accuracy", "rmsd", "rmsd_unregistered",
-                            "count_error", "acceptable_at"}
-    assert set(perfect["rmsd"]) == {"mean", "ci_low", "ci_high"}
+                            "count_error", "set_rmsd", "acceptable_at", "degenerate", "frac_le2_matched"}
+    assert set(perfect["rmsd"]) == set(perfect["set_rmsd"]) == {"mean", "ci_low", "ci_high"}
+    assert perfect["set_rmsd"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert (perfect["degenerate"], perfect["frac_le2_matched"]) == (False, 0.0)
+    # Failed predictions are left out of the Kabsch RMSD mean but count as c in the set RMSD mean.
+    assert shifted["set_rmsd"]["mean"] == pytest.approx(0.2 * SET_PENALTY, abs=0.01)
+    assert shifted["set_rmsd"]["ci_low"] <= shifted["set_rmsd"]["mean"] <= shifted["set_rmsd"]["ci_high"]
     assert perfect["object_accuracy"]["mean"] == pytest.approx(1.0)
     assert perfect["rmsd"]["mean"] == pytest.approx(0.0, abs=1e-9)
     assert perfect["acceptable_at"] == {"0.01": 1.0, "0.05": 1.0, "0.10": 1.0}
@@ -45,6 +52,7 @@ def test_perfect_and_shifted_and_failing_methods(small_dataset_dir, tmp_path, ca
     assert shifted["acceptable_at"]["0.10"] == pytest.approx(0.8)
     rows = list(csv.DictReader((out / "per_episode.csv").open()))
     assert len(rows) == 2 * len(eps)
+    assert {float(r["set_rmsd"]) for r in rows if r["failed"] == "True"} == {SET_PENALTY}
     report = (out / "report.md").read_text()
     assert "SYNTHETIC" in report and "| perfect |" in report and "N = 1 gives RMSD 0" in report
 
@@ -73,8 +81,27 @@ def test_one_object_predictions_are_flagged(small_dataset_dir, tmp_path):
     for p in preds:
         p.placements = p.placements[:1]
     write_predictions(tmp_path / "lonely.jsonl", preds)
+    write_predictions(tmp_path / "shifted.jsonl", _predictions(ds, eps, "shifted", shift=0.05))
     assert main(["evaluate", "--dataset", str(small_dataset_dir), "--predictions", str(tmp_path / "lonely.jsonl"),
-                 "--out", str(tmp_path / "ev"), "--bootstrap", "50"]) == 0
-    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())["lonely"]
+                 str(tmp_path / "shifted.jsonl"), "--out", str(tmp_path / "ev"), "--bootstrap", "50"]) == 0
+    summary = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    metrics = summary["lonely"]
     assert metrics["rmsd"]["mean"] == pytest.approx(0.0) and metrics["few_objects_rate"] == 1.0
-    assert "Warning: lonely matches at most 2 objects in 100%" in (tmp_path / "ev" / "report.md").read_text()
+    assert metrics["degenerate"] is True and metrics["frac_le2_matched"] == 1.0
+    assert summary["shifted"]["degenerate"] is False
+    # 3-5 ground-truth objects, one predicted: at least sqrt(2/3) * c, never ~0.
+    assert metrics["set_rmsd"]["mean"] >= (2 / 3) ** 0.5 * SET_PENALTY - 1e-9
+    assert list(summary) == ["shifted", "lonely"]  # metrics.json in rank order, though lonely was given first
+    report = (tmp_path / "ev" / "report.md").read_text()
+    assert "Warning: lonely matches at most 2 objects in 100%" in report
+    assert "| 1 | shifted |" in report and f"| 2 | lonely{DEGENERATE_MARK} |" in report
+    assert "ranked by mean set RMSD" in report and "paper's metrics" in report
+
+
+def test_rank_methods_puts_degenerate_methods_last():
+    def entry(mean, degenerate=False):
+        return {"set_rmsd": {"mean": mean}, "degenerate": degenerate}
+
+    summary = {"one_object": entry(0.01, True), "bad": entry(0.19), "good": entry(0.05), "none": entry(None),
+               "tie": entry(0.05), "two_objects": entry(0.15, True)}
+    assert rank_methods(summary) == ["good", "tie", "bad", "none", "one_object", "two_objects"]

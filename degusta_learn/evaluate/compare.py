@@ -8,6 +8,9 @@ A compare config lists methods; each is either an existing predictions file or a
 is run (once per context length, into `<out>/predictions/`; files already there are reused, so an
 interrupted comparison resumes). Every method must cover exactly the same episodes (refused otherwise,
 naming the mismatch). A method whose run fails is reported as failed; the rest of the report is written.
+The report lists the methods best first by mean set RMSD, degenerate methods last and marked
+(evaluate/summary.py, docs/metrics.md); the paired comparisons and the qualitative reference follow
+that order.
 
 Writes `<out>/report.md`, `report.html` (opens without a server), `metrics.json`, `per_episode.csv`,
 `plots/*.png` and `qualitative/*.png`.
@@ -24,7 +27,7 @@ import numpy as np
 from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import EpisodeRow, score_predictions
-from degusta_learn.evaluate.summary import summarize
+from degusta_learn.evaluate.summary import rank_methods, summarize
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
 from degusta_learn.scene import (
     CONTEXT_LENGTHS, Dataset, Episode, Prediction, load_dataset, make_episodes, read_episodes, read_predictions,
@@ -63,7 +66,7 @@ class CompareConfig:
     out: str
     """Report folder."""
     methods: list[MethodEntry]
-    """The methods, in report order; the first is the reference of the paired comparisons."""
+    """The methods; the report ranks them by mean set RMSD (degenerate ones last), this order breaks ties."""
     contexts: list[int] = field(default_factory=lambda: [0, 2, 4])
     """Context lengths to build episodes for (ignored when `episodes` is set)."""
     split: str = "test"
@@ -75,7 +78,7 @@ class CompareConfig:
     n_bootstrap: int = 1000
     """Bootstrap resamples of the intervals (more: tighter estimates of the interval, slower)."""
     qualitative: int = 3
-    """Random episodes drawn side by side (plus the reference method's best and worst)."""
+    """Random episodes drawn side by side (plus the best and worst episode of the top-ranked method)."""
     image_size: int = 256
     """Pixel size of each qualitative panel."""
     title: str = "Comparison report"
@@ -134,18 +137,24 @@ def _collect(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, ep_map: dict[s
     return sorted(preds, key=lambda p: p.episode)
 
 
+PAIRED_METRICS = ("set_rmsd", "object_accuracy", "rmsd")
+
+
 def paired_table(rows: list[EpisodeRow], methods: list[str], n_bootstrap: int, seed: int) -> list[dict]:
-    """Paired bootstrap differences (b - a) per metric for every pair of methods on shared episodes."""
+    """Paired bootstrap differences (b - a) per metric for every pair of methods on shared episodes.
+
+    Pairs follow the order of `methods` (pass them ranked: a is then the better-ranked method).
+    """
     by = {m: {r.episode: r for r in rows if r.method == m} for m in methods}
     out = []
     for a, b in itertools.combinations(methods, 2):
         eps = sorted(set(by[a]) & set(by[b]))
         entry = {"a": a, "b": b}
-        for metric in ("object_accuracy", "rmsd"):
+        for metric in PAIRED_METRICS:
             va = np.array([getattr(by[a][e], metric) for e in eps], dtype=float)
             vb = np.array([getattr(by[b][e], metric) for e in eps], dtype=float)
             ok = np.isfinite(va) & np.isfinite(vb)
-            entry[metric] = (paired_bootstrap(va[ok], vb[ok], n_resamples=n_bootstrap, seed=seed)
+            entry[metric] = (paired_bootstrap(vb[ok], va[ok], n_resamples=n_bootstrap, seed=seed)  # mean(b - a)
                              if ok.sum() >= 2 else None)
         out.append(entry)
     return out
@@ -173,7 +182,7 @@ def compare(cfg: CompareConfig, log=print) -> Path:
     for name, preds in predictions.items():
         write_predictions(pred_dir / f"{name}.jsonl", preds)
     summary = summarize(rows, cfg.n_bootstrap, cfg.seed)
-    methods = [m.name for m in cfg.methods if m.name in predictions]
+    methods = rank_methods(summary)  # best first; summarize already returns this order
     paired = paired_table(rows, methods, cfg.n_bootstrap, cfg.seed)
     write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, predictions,
                          acceptability_curve(ds.ratings), log)

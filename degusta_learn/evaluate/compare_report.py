@@ -1,4 +1,9 @@
-"""Writing the comparison report folder: markdown + HTML, metrics.json, per_episode.csv, plots, images."""
+"""Writing the comparison report folder: markdown + HTML, metrics.json, per_episode.csv, plots, images.
+
+Every table, plot and image lists the methods in rank order (summary.rank_methods: mean set RMSD, lower
+first, degenerate methods last) and marks degenerate methods (summary.label; grey hatched bars, dotted
+lines, "[degenerate]" in qualitative panel titles).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_
 from degusta_learn.evaluate.report import (
     METRIC_NOTES, acceptability_lines, context_table, few_object_warnings, method_table, write_per_episode_csv,
 )
+from degusta_learn.evaluate.summary import label, ranked
 from degusta_learn.fileio import atomic_write_json, atomic_write_text
 
 _HTML = """<!doctype html><html><head><meta charset="utf-8"><title>{title}</title><style>
@@ -24,22 +30,26 @@ code{{background:#f3f3f3}}</style></head><body>
 """
 
 
-def _paired_lines(paired: list[dict]) -> list[str]:
+def _paired_lines(paired: list[dict], summary: dict[str, dict]) -> list[str]:
     if not paired:
         return []
     lines = ["Differences b - a on the same episodes (paired bootstrap, 95% interval, two-sided p); "
-             "**bold** where the interval excludes 0.", "",
-             "| a | b | Δ object accuracy | p | Δ RMSD | p |", "|---|---|---|---:|---|---:|"]
+             "**bold** where the interval excludes 0. Pairs follow the ranking: a is the better-ranked method. "
+             "Set RMSD counts a failed prediction as c; the Kabsch RMSD (paper) column uses only the episodes "
+             "where both predicted something.", "",
+             "| a | b | Δ set RMSD | p | Δ object accuracy (paper) | p | Δ Kabsch RMSD (paper) | p |",
+             "|---|---|---|---:|---|---:|---|---:|"]
     for e in paired:
         cells = []
-        for metric in ("object_accuracy", "rmsd"):
-            r = e[metric]
+        for metric in ("set_rmsd", "object_accuracy", "rmsd"):
+            r = e.get(metric)
             if r is None:
                 cells += ["-", "-"]
                 continue
             text = f"{r['diff']:+.3f} [{r['lo']:+.3f}, {r['hi']:+.3f}]"
             cells += [f"**{text}**" if r["lo"] > 0 or r["hi"] < 0 else text, f"{r['p_value']:.3f}"]
-        lines.append(f"| {e['a']} | {e['b']} | " + " | ".join(cells) + " |")
+        lines.append(f"| {label(e['a'], summary[e['a']])} | {label(e['b'], summary[e['b']])} | "
+                     + " | ".join(cells) + " |")
     return lines
 
 
@@ -49,7 +59,7 @@ def _paper_table(summary: dict[str, dict], curve: dict[float, float]) -> list[st
     lines = ["| RMSD threshold | " + " | ".join(ts) + " |", "|---|" + "---:|" * len(ts),
              "| people: % of ratings with drop < 0.2 | " + " | ".join(f"{curve[float(t)]:.3f}" for t in ts) + " |"]
     for method, s in summary.items():
-        lines.append(f"| {method}: % of predictions with RMSD <= t | "
+        lines.append(f"| {label(method, s)}: % of predictions with RMSD <= t | "
                      + " | ".join(f"{s['acceptable_at'].get(t, float('nan')):.3f}" for t in ts) + " |")
     return lines
 
@@ -57,7 +67,7 @@ def _paper_table(summary: dict[str, dict], curve: dict[float, float]) -> list[st
 def _cost_lines(summary: dict[str, dict]) -> list[str]:
     lines = ["| method | failure rate | tokens / episode | USD / episode | USD total |", "|---|---:|---:|---:|---:|"]
     for method, s in summary.items():
-        lines.append(f"| {method} | {s['failure_rate']:.3f} | {s.get('tokens_per_episode', '-')} | "
+        lines.append(f"| {label(method, s)} | {s['failure_rate']:.3f} | {s.get('tokens_per_episode', '-')} | "
                      f"{s.get('cost_usd_per_episode', '-')} | {s.get('cost_usd_total', '-')} |")
     return lines
 
@@ -71,19 +81,20 @@ def _grid_floor(ds) -> float | None:
         return None
 
 
-def _qualitative(cfg, ds, rows, predictions, out: Path) -> list[str]:
+def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
+    """Side-by-side images: the top-ranked method's best and worst episode (by set RMSD), then random ones."""
     from degusta_learn.evaluate.qualitative import render_side_by_side
     from degusta_learn.render.lifting import Renderer
 
     if not predictions:
         return []
-    ref = next(iter(predictions))
-    ref_rows = [r for r in rows if r.method == ref and math.isfinite(r.rmsd)]
+    ref = next(iter(predictions))  # ranked: the top-ranked method
+    ref_rows = [r for r in rows if r.method == ref and not r.failed and math.isfinite(r.set_rmsd)]
     chosen: list[tuple[str, str]] = []
     if ref_rows:
-        best = min(ref_rows, key=lambda r: (r.rmsd, r.episode))
-        worst = max(ref_rows, key=lambda r: (r.rmsd, r.episode))
-        chosen += [(f"best of {ref}", best.episode), (f"worst of {ref}", worst.episode)]
+        best = min(ref_rows, key=lambda r: (r.set_rmsd, r.episode))
+        worst = max(ref_rows, key=lambda r: (r.set_rmsd, r.episode))
+        chosen += [(f"best of {ref} (top-ranked)", best.episode), (f"worst of {ref} (top-ranked)", worst.episode)]
     episodes = sorted({r.episode for r in rows})
     rng = np.random.default_rng(cfg.seed)
     for i in rng.choice(len(episodes), size=min(cfg.qualitative, len(episodes)), replace=False):
@@ -96,8 +107,8 @@ def _qualitative(cfg, ds, rows, predictions, out: Path) -> list[str]:
         for method, preds in predictions.items():
             pred = next(p for p in preds if p.episode == eid)
             r = by[(method, eid)]
-            score = "failed" if r.failed else f"RMSD {r.rmsd:.3f}, acc {r.object_accuracy:.2f}"
-            panels[method] = (pred.placements, score)
+            score = "failed" if r.failed else f"set {r.set_rmsd:.3f}, RMSD {r.rmsd:.3f}, acc {r.object_accuracy:.2f}"
+            panels[method + (" [degenerate]" if summary[method].get("degenerate") else "")] = (pred.placements, score)
         first = next(p for p in predictions[ref] if p.episode == eid)
         name = f"qualitative/{n:02d}.png"
         render_side_by_side(ds, renderer, first.participant, first.target, panels, out / name)
@@ -108,8 +119,11 @@ def _qualitative(cfg, ds, rows, predictions, out: Path) -> list[str]:
 def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, predictions, curve, log) -> None:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
+    summary = ranked(summary)
+    predictions = {m: predictions[m] for m in summary if m in predictions}  # rank order
     write_per_episode_csv(out / "per_episode.csv", rows)
     atomic_write_json(out / "metrics.json", {"dataset": ds.label, "n_episodes": len(episodes), "methods": summary,
+                                             "ranking": list(summary), "ranked_by": "set_rmsd (degenerate last)",
                                              "paired": paired, "failed_methods": failures,
                                              "rating_acceptance": {f"{t:.2f}": v for t, v in curve.items()}})
     floor = _grid_floor(ds)
@@ -125,7 +139,8 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         log("[compare] plotting")
         plot_metric_bars(summary, plots / "metrics.png", floor)
         rmsds = {m: np.array([r.rmsd for r in rows if r.method == m and math.isfinite(r.rmsd)]) for m in summary}
-        plot_acceptability(curve, rmsds, plots / "acceptability.png")
+        plot_acceptability(curve, rmsds, plots / "acceptability.png",
+                           {m for m, s in summary.items() if s.get("degenerate")})
         has_ctx = plot_context(summary, plots / "context.png", floor) is not None
         lines += ["## Results", "", *method_table(summary), "", *few_object_warnings(summary),
                   "![metrics](plots/metrics.png)", ""]
@@ -133,17 +148,18 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
                   *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
         ctx = context_table(summary)
         if ctx:
-            lines += ["## Object accuracy and RMSD by context length (the paper's Table 2)", "", *ctx, ""]
+            lines += ["## Set RMSD, object accuracy and Kabsch RMSD by context length (the paper's Table 2, "
+                      "plus set RMSD)", "", *ctx, ""]
             if has_ctx:
                 lines += ["![context](plots/context.png)", ""]
         if floor is not None:
             lines += [f"Grid quantization floor (8 x 8 grid, position -> cells -> position): RMSD {floor:.4f}. "
                       "No grid-answering method can be more precise than this.", ""]
         lines += ["## Failures and cost", "", *_cost_lines(summary), ""]
-        lines += ["## Paired comparisons", "", *_paired_lines(paired), ""]
+        lines += ["## Paired comparisons", "", *_paired_lines(paired, summary), ""]
         log("[compare] rendering qualitative images")
         lines += ["## Qualitative: ground truth and each method side by side", "",
-                  *_qualitative(cfg, ds, rows, predictions, out)]
+                  *_qualitative(cfg, ds, rows, predictions, summary, out)]
     lines += ["## How to read this", "", METRIC_NOTES, "",
               "Per-episode scores: `per_episode.csv`; summary: `metrics.json`; predictions: `predictions/`.", ""]
     text = "\n".join(lines)

@@ -1,10 +1,14 @@
 """Plots of a comparison report (matplotlib, Agg backend, PNG): deterministic file content per input.
 
-- `plot_metric_bars`: Kabsch RMSD and object accuracy per method with 95% intervals;
+- `plot_metric_bars`: set RMSD, Kabsch RMSD and object accuracy per method with 95% intervals;
 - `plot_acceptability`: the rating-based acceptance curve with each method's RMSD distribution (CDF);
-- `plot_context`: accuracy and RMSD against context length per method;
+- `plot_context`: set RMSD, accuracy and Kabsch RMSD against context length per method;
 - the grid quantization floor (RMSD of the position -> cells -> position round trip) is drawn as a
   dashed line on the RMSD panels where it is known.
+
+Methods appear in rank order (bars left to right, legends top to bottom: summary.rank_methods). A
+degenerate method (most predictions match <= 2 objects) is drawn grey and hatched (bars) or dotted
+(lines), and its label carries summary.DEGENERATE_MARK.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from degusta_learn.evaluate.summary import DEGENERATE_MARK, ranked  # noqa: E402
 from degusta_learn.fileio import atomic_open  # noqa: E402
 
 _METADATA = {"Software": None}  # no version strings in the PNG: same input, same bytes
@@ -29,6 +34,14 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+_BAR, _DEGENERATE = "#4c72b0", "#9a9a9a"
+
+
+def _line_style(degenerate: bool) -> dict:
+    """Dotted for a degenerate method (its own colour, so two of them stay apart), solid otherwise."""
+    return {"ls": ":", "lw": 1.8} if degenerate else {"ls": "-"}
+
+
 def _err(stat: dict) -> tuple[float, float, float]:
     if not stat or stat.get("mean") is None:
         return np.nan, 0.0, 0.0
@@ -36,24 +49,40 @@ def _err(stat: dict) -> tuple[float, float, float]:
 
 
 def plot_metric_bars(summary: dict[str, dict], path: Path, rmsd_floor: float | None = None) -> Path:
+    """Bars with 95% intervals, methods ranked left to right, degenerate ones grey and hatched."""
+    summary = ranked(summary)
     methods = list(summary)
-    fig, axes = plt.subplots(1, 2, figsize=(max(6, 1.3 * len(methods) + 3), 3.6))
-    for ax, metric, label in ((axes[0], "rmsd", "Kabsch RMSD (lower is better)"),
-                              (axes[1], "object_accuracy", "object accuracy (higher is better)")):
-        vals = [_err(summary[m][metric]) for m in methods]
+    degenerate = [bool(summary[m].get("degenerate")) for m in methods]
+    ticks = [m + ("\n(degenerate)" if d else "") for m, d in zip(methods, degenerate)]
+    fig, axes = plt.subplots(1, 3, figsize=(max(9, 1.5 * len(methods) + 4), 3.9))
+    for ax, metric, title in ((axes[0], "set_rmsd", "set RMSD, ranks the methods (lower is better)"),
+                              (axes[1], "rmsd", "Kabsch RMSD, paper (lower is better)"),
+                              (axes[2], "object_accuracy", "object accuracy, paper (higher is better)")):
+        vals = [_err(summary[m].get(metric)) for m in methods]
         x = np.arange(len(methods))
         ax.bar(x, [v[0] for v in vals], yerr=np.array([[v[1] for v in vals], [v[2] for v in vals]]),
-               color="#4c72b0", capsize=4)
-        ax.set_xticks(x, methods, rotation=30, ha="right")
-        ax.set_title(label, fontsize=10)
-        if metric == "rmsd" and rmsd_floor is not None:
+               color=[_DEGENERATE if d else _BAR for d in degenerate],
+               hatch=["//" if d else "" for d in degenerate], edgecolor="white", capsize=4)
+        ax.set_xticks(x, ticks, rotation=30, ha="right", fontsize=8)
+        ax.set_title(title, fontsize=9)
+        if metric != "object_accuracy" and rmsd_floor is not None:
             ax.axhline(rmsd_floor, color="#c44e52", ls="--", lw=1, label=f"8x8 grid floor {rmsd_floor:.3f}")
             ax.legend(fontsize=8)
+    note = "methods ranked by set RMSD, best on the left"
+    if any(degenerate):
+        note += "; grey hatched:" + DEGENERATE_MARK + ", ranked last"
+    fig.suptitle(note, fontsize=9)
     fig.tight_layout()
     return _save(fig, path)
 
 
-def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], path: Path) -> Path:
+def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], path: Path,
+                       degenerate: set[str] | frozenset[str] = frozenset()) -> Path:
+    """People's acceptance curve and each method's Kabsch RMSD CDF (legend in the order of `rmsds`).
+
+    A method in `degenerate` is drawn dotted and labelled with DEGENERATE_MARK: its Kabsch
+    RMSD is ~0 by construction, so its curve says nothing about quality.
+    """
     fig, ax = plt.subplots(figsize=(6.2, 3.8))
     ts = sorted(curve)
     ax.plot(ts, [curve[t] for t in ts], "k-o", lw=2, label="people: rating drop < 0.2")
@@ -61,11 +90,14 @@ def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], 
     for method, values in rmsds.items():
         v = np.asarray(values, dtype=float)
         if len(v):
-            ax.plot(grid, [(v <= g).sum() / len(v) for g in grid], lw=1.3, label=f"{method}: RMSD <= t")
+            mark = DEGENERATE_MARK if method in degenerate else ""
+            ax.plot(grid, [(v <= g).sum() / len(v) for g in grid], **({"lw": 1.3} | _line_style(bool(mark))),
+                    label=f"{method}{mark}: RMSD <= t")
     ax.set_xlabel("RMSD threshold t (normalized image units)")
     ax.set_ylabel("fraction")
     ax.set_ylim(0, 1.02)
-    ax.set_title("Acceptability: people's tolerance vs each method's RMSD distribution", fontsize=10)
+    ax.set_title("Acceptability (paper): people's tolerance vs each method's Kabsch RMSD\n"
+                 "legend: methods ranked by set RMSD, best first", fontsize=9)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     return _save(fig, path)
@@ -74,20 +106,23 @@ def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], 
 def plot_context(summary: dict[str, dict], path: Path, rmsd_floor: float | None = None) -> Path | None:
     if not any("by_context" in s for s in summary.values()):
         return None
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.4))
-    for method, s in summary.items():
+    fig, axes = plt.subplots(1, 3, figsize=(11.5, 3.6))
+    for method, s in ranked(summary).items():
         by = s.get("by_context", {})
         ks = sorted(by, key=int)
-        for ax, metric in ((axes[0], "object_accuracy"), (axes[1], "rmsd")):
-            ys = [by[k][metric]["mean"] if by[k][metric]["mean"] is not None else np.nan for k in ks]
-            ax.plot([int(k) for k in ks], ys, "-o", label=method)
-    axes[0].set_title("object accuracy vs context length", fontsize=10)
-    axes[1].set_title("Kabsch RMSD vs context length", fontsize=10)
+        for ax, metric in ((axes[0], "set_rmsd"), (axes[1], "object_accuracy"), (axes[2], "rmsd")):
+            ys = [(by[k].get(metric) or {}).get("mean") for k in ks]
+            ax.plot([int(k) for k in ks], [np.nan if y is None else y for y in ys], marker="o",
+                    label=method + (DEGENERATE_MARK if s.get("degenerate") else ""),
+                    **_line_style(bool(s.get("degenerate"))))
+    axes[0].set_title("set RMSD vs context length", fontsize=10)
+    axes[1].set_title("object accuracy (paper) vs context length", fontsize=10)
+    axes[2].set_title("Kabsch RMSD (paper) vs context length", fontsize=10)
     if rmsd_floor is not None:
-        axes[1].axhline(rmsd_floor, color="#c44e52", ls="--", lw=1, label="8x8 grid floor")
+        axes[2].axhline(rmsd_floor, color="#c44e52", ls="--", lw=1, label="8x8 grid floor")
     for ax in axes:
         ax.set_xlabel("context arrangements k")
         ax.set_xticks([0, 2, 4])
-    axes[1].legend(fontsize=7)
+    axes[2].legend(fontsize=7, title="ranked by set RMSD", title_fontsize=7)
     fig.tight_layout()
     return _save(fig, path)

@@ -2,7 +2,8 @@
 
 The report names the dataset (and says SYNTHETIC where it is), states how each metric is computed in
 one line, and warns that Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0):
-read it beside the count error and the unregistered RMSD.
+read it beside the set RMSD, the count error and the unregistered RMSD. Methods are listed best first
+by mean set RMSD (summary.rank_methods); a degenerate method is marked and listed after all others.
 """
 
 from __future__ import annotations
@@ -12,16 +13,22 @@ import math
 from pathlib import Path
 
 from degusta_learn.evaluate.scoring import CSV_COLUMNS, EpisodeRow
+from degusta_learn.evaluate.summary import DEGENERATE_MARK, RANKING_NOTE, label, ranked
 from degusta_learn.fileio import atomic_open, atomic_write_json, atomic_write_text
+from degusta_learn.metrics import SET_PENALTY
 
-METRIC_NOTES = """\
-- **object accuracy**: fraction of ground-truth objects whose matched prediction is exactly the same object id (higher is better).
-- **RMSD**: Kabsch RMSD between matched positions after the best proper 2D rotation + translation, normalized image units (lower is better).
+PAPER_NOTE = "The paper's metrics: object accuracy, Kabsch RMSD and acceptability (acc@t), marked (paper)."
+
+METRIC_NOTES = f"""\
+- **set RMSD** (ranks the methods): OSPA-style set distance on the same matching and Kabsch registration as RMSD: sqrt((sum of min(d, c)^2 over matched pairs + c^2 per unmatched object) / max(n_gt, n_pred)), c = {SET_PENALTY} (lower is better; a failed prediction scores c, one object of five at least 0.179).
+- **object accuracy** (paper): fraction of ground-truth objects whose matched prediction is exactly the same object id (higher is better).
+- **Kabsch RMSD** (paper): RMSD between matched positions after the best proper 2D rotation + translation, normalized image units (lower is better).
+- **acc@t** (paper): fraction of episodes whose prediction has Kabsch RMSD <= t (failed predictions never count).
 - **unreg. RMSD**: RMSD of matched positions without registration (where, not only what shape).
 - **count error**: |predicted objects - ground-truth objects|.
-- **acc@t**: fraction of episodes whose prediction has Kabsch RMSD <= t (failed predictions never count).
+- **{DEGENERATE_MARK.strip()}**: more than half of the method's non-failed predictions match at most 2 objects of a ground truth of 3 or more, where Kabsch RMSD is ~0 by construction; such a method is ranked after all others.
 - Matching: Hungarian assignment on Hamming distance over type, colours, materials, shape, pattern; ties go to nearer positions.
-- Caution: Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0, N = 2 is nearly free); read it beside count error and unregistered RMSD. Failed predictions are left out of RMSD means and counted in the failure rate.
+- Caution: Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0, N = 2 is nearly free); read it beside set RMSD, count error and unregistered RMSD. Failed predictions are left out of the Kabsch and unregistered RMSD means and counted in the failure rate (and as c in set RMSD).
 """
 
 
@@ -33,13 +40,21 @@ def fmt(stat: dict | None, digits: int = 3) -> str:
 
 
 def method_table(summary: dict[str, dict]) -> list[str]:
-    lines = ["| method | episodes | failure rate | object accuracy | RMSD | unreg. RMSD | count error | acc@0.01 | acc@0.05 | acc@0.10 |",
-             "|---|---:|---:|---|---|---|---|---:|---:|---:|"]
-    for method, s in summary.items():
+    """The main table, best first (see RANKING_NOTE), degenerate rows marked, with its notes above it."""
+    lines = [RANKING_NOTE + " " + PAPER_NOTE, "",
+             "| rank | method | episodes | failure rate | set RMSD | object accuracy (paper) | Kabsch RMSD (paper) | "
+             "acc@0.01 (paper) | acc@0.05 (paper) | acc@0.10 (paper) | unreg. RMSD | count error |",
+             "|---:|---|---:|---:|---|---|---|---:|---:|---:|---|---|"]
+    for rank, (method, s) in enumerate(ranked(summary).items(), 1):
         acc = s["acceptable_at"]
-        lines.append(f"| {method} | {s['n_episodes']} | {s['failure_rate']:.3f} | {fmt(s['object_accuracy'])} | "
-                     f"{fmt(s['rmsd'])} | {fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} | "
-                     f"{acc['0.01']:.3f} | {acc['0.05']:.3f} | {acc['0.10']:.3f} |")
+        lines.append(f"| {rank} | {label(method, s)} | {s['n_episodes']} | {s['failure_rate']:.3f} | "
+                     f"{fmt(s.get('set_rmsd'))} | {fmt(s['object_accuracy'])} | {fmt(s['rmsd'])} | "
+                     f"{acc['0.01']:.3f} | {acc['0.05']:.3f} | {acc['0.10']:.3f} | "
+                     f"{fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} |")
+    if any(s.get("degenerate") for s in summary.values()):
+        lines += ["", f"{DEGENERATE_MARK.strip()}: more than half of this method's non-failed predictions match at "
+                  "most 2 objects of a ground truth of 3 or more, where Kabsch RMSD is ~0 by construction; it is "
+                  "ranked after every other method."]
     return lines
 
 
@@ -50,23 +65,24 @@ def few_object_warnings(summary: dict[str, dict], threshold: float = 0.2) -> lis
         rate = s.get("few_objects_rate")
         if rate is not None and rate >= threshold:
             lines.append(f"> Warning: {method} matches at most 2 objects in {rate:.0%} of its predictions, where "
-                         "Kabsch RMSD is ~0 by construction: judge it by count error and unregistered RMSD.")
+                         "Kabsch RMSD is ~0 by construction: judge it by set RMSD, count error and unregistered RMSD.")
     return [*lines, ""] if lines else []
 
 
 def context_table(summary: dict[str, dict]) -> list[str]:
-    """The paper's Table 2 layout: accuracy and RMSD against context length, one row pair per method."""
+    """The paper's Table 2 layout (accuracy and RMSD against context length) plus set RMSD, methods ranked."""
     contexts = sorted({k for s in summary.values() for k in s.get("by_context", {})}, key=int)
     if not contexts:
         return []
     lines = ["| method | metric | " + " | ".join(f"k = {k}" for k in contexts) + " |",
              "|---|---|" + "---:|" * len(contexts)]
-    for method, s in summary.items():
+    for method, s in ranked(summary).items():
         by = s.get("by_context", {})
-        for metric, label in (("object_accuracy", "object accuracy"), ("rmsd", "RMSD")):
-            cells = [f"{by[k][metric]['mean']:.3f}" if k in by and by[k][metric]["mean"] is not None else "-"
-                     for k in contexts]
-            lines.append(f"| {method} | {label} | " + " | ".join(cells) + " |")
+        for metric, name in (("set_rmsd", "set RMSD"), ("object_accuracy", "object accuracy (paper)"),
+                             ("rmsd", "Kabsch RMSD (paper)")):
+            cells = [f"{by[k][metric]['mean']:.3f}" if k in by and (by[k].get(metric) or {}).get("mean") is not None
+                     else "-" for k in contexts]
+            lines.append(f"| {label(method, s)} | {name} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -92,6 +108,7 @@ def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, d
                  curve: dict[float, float], from_ratings: bool, notes: list[str] | None = None) -> None:
     """Write metrics.json, per_episode.csv and report.md into `out` (each atomically)."""
     out.mkdir(parents=True, exist_ok=True)
+    summary = ranked(summary)
     atomic_write_json(out / "metrics.json", summary)
     write_per_episode_csv(out / "per_episode.csv", rows)
     n_eps = len({r.episode for r in rows})

@@ -17,7 +17,8 @@ from degusta_learn.scene import Dataset, Episode, Prediction
 _CONTEXT_IN_ID = re.compile(r"/k(\d+)$")
 
 CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", "failed", "n_gt", "n_pred",
-               "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "tokens", "cost_usd")
+               "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd", "tokens",
+               "cost_usd")
 
 
 @dataclass
@@ -38,6 +39,7 @@ class EpisodeRow:
     rmsd: float
     rmsd_unregistered: float
     count_error: float
+    set_rmsd: float  # set-aware (OSPA) RMSD: c = SET_PENALTY per unmatched object; c for a failed prediction
     tokens: float | None = None
     cost_usd: float | None = None
 
@@ -75,5 +77,5 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
             context=context, task=task, failed=pred.failed or not pred.placements, n_gt=score.n_gt,
             n_pred=score.n_pred, n_matched=score.n_matched, object_accuracy=score.object_accuracy,
             rmsd=score.rmsd, rmsd_unregistered=score.rmsd_unregistered, count_error=score.count_error,
-            tokens=usage.get("tokens"), cost_usd=usage.get("cost_usd")))
+            set_rmsd=score.set_rmsd, tokens=usage.get("tokens"), cost_usd=usage.get("cost_usd")))
     return rows

@@ -1,11 +1,18 @@
 """Per-method summaries with bootstrap intervals: the content of metrics.json.
 
 For each method: `n_episodes`, `failure_rate`, and for each of object_accuracy, rmsd,
-rmsd_unregistered and count_error a {"mean", "ci_low", "ci_high"} (percentile bootstrap over
+rmsd_unregistered, count_error and set_rmsd a {"mean", "ci_low", "ci_high"} (percentile bootstrap over
 episodes); `acceptable_at` maps "0.01", "0.05", "0.10" to the fraction of episodes whose prediction
 has Kabsch RMSD <= t. A failed or empty prediction has object accuracy 0, is not acceptable at any t
-and is left out of the RMSD means (which is why failure_rate always stands beside them).
-`by_context` repeats the summary per context length when the episodes span several.
+and is left out of the Kabsch and unregistered RMSD means (which is why failure_rate always stands
+beside them); in the set_rmsd mean it counts as c = SET_PENALTY, the worst score.
+`frac_le2_matched` and `degenerate` say whether Kabsch RMSD flatters the method
+(metrics.few_matched_fraction). `by_context` repeats the summary per context length when the episodes
+span several.
+
+Ranking (the one order every table and plot uses): non-degenerate methods by mean set_rmsd, lower
+first, then the degenerate ones by the same key; ties keep the given order. `summarize` returns its
+dict in that order; `rank_methods` / `ranked` apply it to any summary.
 """
 
 from __future__ import annotations
@@ -16,9 +23,12 @@ from collections import defaultdict
 import numpy as np
 
 from degusta_learn.evaluate.scoring import EpisodeRow
-from degusta_learn.metrics import THRESHOLDS, bootstrap_ci, fraction_acceptable
+from degusta_learn.metrics import THRESHOLDS, bootstrap_ci, few_matched_fraction, fraction_acceptable
 
-METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error")
+METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd")
+DEGENERATE_MARK = " (degenerate: ≤2 objects matched)"
+RANKING_NOTE = ("Methods are ranked by mean set RMSD (lower is better); degenerate methods come after all others, "
+                "whatever their scores.")
 
 
 def _interval(values: np.ndarray, n_bootstrap: int, seed: int) -> dict:
@@ -42,6 +52,10 @@ def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 
     scored = [r for r in rows if not r.failed]
     # Kabsch RMSD is ~0 by construction with 1-2 matched objects: say how often that happens.
     out["few_objects_rate"] = round(sum(r.n_matched <= 2 for r in scored) / len(scored), 6) if scored else None
+    frac, degenerate = few_matched_fraction([r.n_gt for r in rows], [r.n_matched for r in rows],
+                                            [r.failed for r in rows])
+    out["frac_le2_matched"] = _num(frac)
+    out["degenerate"] = degenerate
     rmsds = np.array([r.rmsd for r in rows], dtype=float)
     out["acceptable_at"] = {f"{t:.2f}": round(v, 6) for t, v in fraction_acceptable(rmsds, THRESHOLDS).items()}
     tokens = [r.tokens for r in rows if r.tokens is not None]
@@ -67,4 +81,24 @@ def summarize(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0) ->
             summary["by_context"] = {str(k): summarize_rows([r for r in mrows if r.context == k], n_bootstrap, seed)
                                      for k in contexts}
         result[method] = summary
-    return result
+    return ranked(result)
+
+
+def rank_methods(summary: dict[str, dict]) -> list[str]:
+    """Method names best first: non-degenerate by mean set_rmsd (lower first), then degenerate ones."""
+    def key(item: tuple[int, str]) -> tuple:
+        i, method = item
+        mean = (summary[method].get("set_rmsd") or {}).get("mean")
+        return bool(summary[method].get("degenerate")), mean is None, mean if mean is not None else 0.0, i
+
+    return [m for _, m in sorted(enumerate(summary), key=key)]
+
+
+def ranked(summary: dict[str, dict]) -> dict[str, dict]:
+    """The same summary with its methods in rank order."""
+    return {m: summary[m] for m in rank_methods(summary)}
+
+
+def label(method: str, summary: dict) -> str:
+    """The method's name as tables and plots show it: with DEGENERATE_MARK when it is degenerate."""
+    return method + DEGENERATE_MARK if summary.get("degenerate") else method

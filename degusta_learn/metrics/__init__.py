@@ -1,7 +1,8 @@
 """Metrics (numpy + scipy only): matching, Kabsch RMSD, per-episode scores, acceptability, bootstrap.
 
 See docs/metrics.md. Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0), so
-unregistered RMSD and count error are always reported beside it.
+unregistered RMSD, count error and the set-aware `set_rmsd` (unmatched objects cost SET_PENALTY each;
+used to rank methods) are always reported beside it.
 
 Usage:
     from degusta_learn.metrics import score_many, bootstrap_ci, fraction_acceptable
@@ -20,10 +21,16 @@ from degusta_learn.metrics.bootstrap import bootstrap_ci, paired_bootstrap
 from degusta_learn.metrics.kabsch import kabsch_rmsd, kabsch_rmsd_batch, kabsch_transform, unregistered_rmsd
 from degusta_learn.metrics.matching import feature_table, match, match_costs
 from degusta_learn.metrics.scores import EpisodeScore, score_many, score_prediction
+from degusta_learn.metrics.set_score import (
+    DEGENERATE_FRACTION,
+    SET_PENALTY,
+    few_matched_fraction,
+    set_rmsd_points,
+)
 
 __all__ = [
-    "PAPER_ACCEPTABILITY", "PAPER_MOGMA_FRACTION", "THRESHOLDS", "EpisodeScore", "acceptability_curve",
-    "bootstrap_ci", "feature_table", "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch",
-    "kabsch_transform", "match", "match_costs", "paired_bootstrap", "score_many", "score_prediction",
-    "unregistered_rmsd",
+    "DEGENERATE_FRACTION", "PAPER_ACCEPTABILITY", "PAPER_MOGMA_FRACTION", "SET_PENALTY", "THRESHOLDS",
+    "EpisodeScore", "acceptability_curve", "bootstrap_ci", "feature_table", "few_matched_fraction",
+    "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch", "kabsch_transform", "match", "match_costs",
+    "paired_bootstrap", "score_many", "score_prediction", "set_rmsd_points", "unregistered_rmsd",
 ]

@@ -16,7 +16,8 @@ reflection: the angle parameterization only contains proper rotations.
 
 Caveat (say it wherever RMSD is reported): Kabsch RMSD alone rewards predicting one or two objects:
 N = 1 always gives 0, N = 2 only compares the two distances. That is why the unregistered RMSD (no
-alignment) and the count error stand beside it. N = 0 gives nan.
+alignment), the count error and the set-aware `set_rmsd` (scores.py, per-pair distances from
+`kabsch_sq_residuals_*`) stand beside it. N = 0 gives nan.
 
 Usage:
     from degusta_learn.metrics import kabsch_rmsd, unregistered_rmsd
@@ -38,6 +39,28 @@ def _as_pairs(gt_xy, pred_xy) -> tuple[np.ndarray, np.ndarray]:
     return p, q
 
 
+def kabsch_sq_residuals_batch(gt_xy: np.ndarray, pred_xy: np.ndarray) -> np.ndarray:
+    """Squared per-pair distances after the Kabsch registration, for E episodes with the same N.
+
+    Args:
+        gt_xy: (E, N, 2) ground-truth points.
+        pred_xy: (E, N, 2) matched predicted points.
+
+    Returns:
+        (E, N) |R q_i + t - p_i|^2 with the best proper rotation R and translation t of each episode.
+    """
+    n = gt_xy.shape[1]
+    if n == 0:
+        return np.zeros((gt_xy.shape[0], 0))
+    pc = gt_xy - gt_xy.sum(axis=1, keepdims=True) / n  # (E, N, 2) centred
+    qc = pred_xy - pred_xy.sum(axis=1, keepdims=True) / n
+    px, py, qx, qy = pc[..., 0], pc[..., 1], qc[..., 0], qc[..., 1]  # (E, N)
+    theta = np.arctan2((qx * py - qy * px).sum(1), (qx * px + qy * py).sum(1))  # (E,)
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    rx, ry = c * qx - s * qy - px, s * qx + c * qy - py  # residuals of the rotated prediction
+    return rx * rx + ry * ry
+
+
 def kabsch_rmsd_batch(gt_xy: np.ndarray, pred_xy: np.ndarray) -> np.ndarray:
     """Kabsch RMSD of E episodes with the same N at once.
 
@@ -51,13 +74,7 @@ def kabsch_rmsd_batch(gt_xy: np.ndarray, pred_xy: np.ndarray) -> np.ndarray:
     n = gt_xy.shape[1]
     if n == 0:
         return np.full(gt_xy.shape[0], np.nan)
-    pc = gt_xy - gt_xy.sum(axis=1, keepdims=True) / n  # (E, N, 2) centred
-    qc = pred_xy - pred_xy.sum(axis=1, keepdims=True) / n
-    px, py, qx, qy = pc[..., 0], pc[..., 1], qc[..., 0], qc[..., 1]  # (E, N)
-    theta = np.arctan2((qx * py - qy * px).sum(1), (qx * px + qy * py).sum(1))  # (E,)
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    rx, ry = c * qx - s * qy - px, s * qx + c * qy - py  # residuals of the rotated prediction
-    return np.sqrt((rx * rx + ry * ry).sum(1) / n)
+    return np.sqrt(kabsch_sq_residuals_batch(gt_xy, pred_xy).sum(1) / n)
 
 
 def kabsch_transform(gt_xy, pred_xy) -> tuple[np.ndarray, np.ndarray]:
@@ -76,11 +93,11 @@ def kabsch_transform(gt_xy, pred_xy) -> tuple[np.ndarray, np.ndarray]:
     return rot, pm - rot @ qm
 
 
-def kabsch_rmsd_points(p: list[list[float]], q: list[list[float]]) -> float:
-    """Kabsch RMSD of two equally long lists of [x, y] (pure Python, the closed form above)."""
+def kabsch_sq_residuals_points(p: list[list[float]], q: list[list[float]]) -> list[float]:
+    """Squared per-pair distances after the Kabsch registration (pure Python, the closed form above)."""
     n = len(p)
     if n == 0:
-        return float("nan")
+        return []
     pmx, pmy = sum(a[0] for a in p) / n, sum(a[1] for a in p) / n
     qmx, qmy = sum(b[0] for b in q) / n, sum(b[1] for b in q) / n
     pc = [(a[0] - pmx, a[1] - pmy) for a in p]
@@ -91,11 +108,18 @@ def kabsch_rmsd_points(p: list[list[float]], q: list[list[float]]) -> float:
         cross += qx * py - qy * px
     theta = math.atan2(cross, dot)
     c, s = math.cos(theta), math.sin(theta)
-    ssd = 0.0
+    out = []
     for (px, py), (qx, qy) in zip(pc, qc):
         rx, ry = c * qx - s * qy - px, s * qx + c * qy - py
-        ssd += rx * rx + ry * ry
-    return math.sqrt(ssd / n)
+        out.append(rx * rx + ry * ry)
+    return out
+
+
+def kabsch_rmsd_points(p: list[list[float]], q: list[list[float]]) -> float:
+    """Kabsch RMSD of two equally long lists of [x, y] (pure Python, the closed form above)."""
+    if not p:
+        return float("nan")
+    return math.sqrt(sum(kabsch_sq_residuals_points(p, q)) / len(p))
 
 
 def kabsch_rmsd(gt_xy, pred_xy) -> float:

@@ -1,14 +1,17 @@
-"""Per-episode scores: object accuracy, Kabsch RMSD, unregistered RMSD and count error.
+"""Per-episode scores: object accuracy, Kabsch RMSD, unregistered RMSD, count error and set RMSD.
 
 - object_accuracy: fraction of ground-truth objects whose matched prediction is exactly the same object
   id; unmatched ground-truth objects count as wrong (nan only for an empty ground truth).
 - rmsd: Kabsch RMSD over the matched pairs (see kabsch.py). It alone rewards predicting one or two
-  objects (N = 1 gives 0), which is why the next two stand beside it.
+  objects (N = 1 gives 0), which is why the next three stand beside it.
 - rmsd_unregistered: RMSD over the matched pairs without any alignment.
 - count_error: |len(pred) - len(gt)|.
+- set_rmsd: the set-aware score (set_score.py): an OSPA distance with penalty c = SET_PENALTY per
+  unmatched object, on the same matching and Kabsch registration as rmsd; in [0, c].
 
 A failed prediction counts as predicting nothing: accuracy 0, both RMSDs nan, n_pred 0, count_error
-len(gt). An empty prediction scores the same.
+len(gt), set_rmsd c (every ground-truth object unmatched). An empty prediction scores the same. An
+empty ground truth gives nan accuracy and set_rmsd.
 
 `score_many` is the fast path for whole prediction files: it groups episodes by (len(gt), len(pred)),
 builds the cost matrices and RMSDs for each group in one vectorized step, and only loops for the
@@ -32,8 +35,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.metrics.kabsch import kabsch_rmsd_batch, kabsch_rmsd_points
+from degusta_learn.metrics.kabsch import kabsch_sq_residuals_batch, kabsch_sq_residuals_points
 from degusta_learn.metrics.matching import as_complex, feature_table, match_costs
+from degusta_learn.metrics.set_score import SET_PENALTY, set_rmsd_batch, set_rmsd_points
 from degusta_learn.scene.catalog import Catalog
 from degusta_learn.scene.types import Arrangement, Placement
 
@@ -51,6 +55,7 @@ class EpisodeScore:
     n_matched: int  # min(n_gt, n_pred)
     n_gt: int
     n_pred: int  # 0 for a failed prediction
+    set_rmsd: float  # OSPA-style: matched distances capped at c, c per unmatched object; in [0, c]
 
 
 def _unpack(pred) -> tuple[Sequence[Placement], bool]:
@@ -67,9 +72,9 @@ def _xy(placements: Sequence[Placement]) -> list[float]:
 def _trivial(n_gt: int, n_pred: int, failed: bool) -> EpisodeScore | None:
     """The score when nothing can be matched (failed, empty prediction or empty ground truth), else None."""
     if failed or n_pred == 0:
-        return EpisodeScore(0.0, NAN, NAN, n_gt, 0, n_gt, 0)
+        return EpisodeScore(0.0, NAN, NAN, n_gt, 0, n_gt, 0, SET_PENALTY if n_gt else NAN)
     if n_gt == 0:
-        return EpisodeScore(NAN, NAN, NAN, n_pred, 0, 0, n_pred)
+        return EpisodeScore(NAN, NAN, NAN, n_pred, 0, 0, n_pred, NAN)
     return None
 
 
@@ -106,7 +111,8 @@ def score_prediction(catalog: Catalog, gt: Arrangement, placements: Sequence[Pla
     k = len(gi)
     unreg = math.sqrt(sum((u[0] - v[0]) ** 2 + (u[1] - v[1]) ** 2 for u, v in zip(a, b)) / k)
     correct = sum(g[i] == p[j] for i, j in zip(gi, pi))  # same row <=> same object id
-    return EpisodeScore(correct / n, kabsch_rmsd_points(a, b), unreg, abs(m - n), k, n, m)
+    sq = kabsch_sq_residuals_points(a, b)
+    return EpisodeScore(correct / n, math.sqrt(sum(sq) / k), unreg, abs(m - n), k, n, m, set_rmsd_points(sq, n, m))
 
 
 def _score_group(table, g: np.ndarray, gxy: np.ndarray, p: np.ndarray, pxy: np.ndarray) -> list[EpisodeScore]:
@@ -120,11 +126,13 @@ def _score_group(table, g: np.ndarray, gxy: np.ndarray, p: np.ndarray, pxy: np.n
     rows = np.arange(n_ep)[:, None]  # (E, 1)
     correct = (g[rows, gi] == p[rows, pi]).sum(1)  # (E,)
     a, b = gxy[rows, gi], pxy[rows, pi]  # (E, k, 2) matched positions
-    rmsd = kabsch_rmsd_batch(a, b).tolist()
+    sq = kabsch_sq_residuals_batch(a, b)  # (E, k) registered squared distances
+    rmsd = np.sqrt(sq.sum(1) / k).tolist()
+    set_rmsd = set_rmsd_batch(sq, n, m).tolist()
     d = a - b
     unreg = np.sqrt((d * d).sum((1, 2)) / k).tolist()
     acc = (correct / n).tolist()
-    return [EpisodeScore(acc[e], rmsd[e], unreg[e], abs(m - n), k, n, m) for e in range(n_ep)]
+    return [EpisodeScore(acc[e], rmsd[e], unreg[e], abs(m - n), k, n, m, set_rmsd[e]) for e in range(n_ep)]
 
 
 def score_many(catalog: Catalog, gts: Sequence[Arrangement], preds: Sequence) -> list[EpisodeScore]:
