@@ -10,7 +10,8 @@ from finetune_support import load, tiny_dir
 from PIL import Image
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.inputs import ChatFormat, set_image_budget, tokens_per_image
+from degusta_learn.render.grid import Grid
+from degusta_learn.finetune.inputs import check_grid_resolution, ChatFormat, set_image_budget, tokens_per_image
 from degusta_learn.finetune.model import load_vlm
 
 
@@ -37,8 +38,8 @@ def test_image_token_count_matches_the_model(kind):
     if kind == "idefics3":  # one tile per image: (image_size / patch)^2 / scale^2, no splitting
         vc = model.config.vision_config
         assert per_image == (vc.image_size // vc.patch_size) ** 2 // model.config.scale_factor ** 2
-    else:  # 56 px -> 4 x 4 patches merged 2 x 2
-        assert per_image == 4
+    else:  # 224 px -> 16 x 16 patches merged 2 x 2
+        assert per_image == 64
     messages = [{"role": "user", "content": [{"type": "image"}, {"type": "image"}, {"type": "image"},
                                              {"type": "text", "text": "where?"}]}]
     images = [Image.new("RGB", (300, 300), c) for c in ("red", "green", "blue")]  # rendered images are square
@@ -53,9 +54,13 @@ def test_image_budget_is_explicit_and_checked():
     model, processor = load("idefics3")
     set_image_budget(processor, model.config, 32)
     fmt = ChatFormat(processor, model.generation_config)
-    assert tokens_per_image(processor, fmt, model.config.image_token_id) == (32 // 8) ** 2 // 4
+    assert tokens_per_image(processor, fmt, model.config.image_token_id) == (32 // 4) ** 2 // 4
     with pytest.raises(DegustaError, match="model.image_size"):
         set_image_budget(processor, model.config, 36)
+    # 32 px gives 4 x 4 image tokens: a grid method on an 8 x 8 grid could not see single cells
+    with pytest.raises(DegustaError, match=r"model.image_size: images give the model 4 x 4 image tokens.* 64 px"):
+        check_grid_resolution(processor, model.config, Grid(8, 8))
+    check_grid_resolution(processor, model.config, Grid(4, 4))  # a 4 x 4 grid is resolved
 
 
 def test_unloadable_model_id_fails_fast_naming_the_key(tmp_path):

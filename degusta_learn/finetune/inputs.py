@@ -129,6 +129,14 @@ def set_image_budget(processor, model_config, image_size: int | None, key: str =
         for attr, value in (("min_pixels", lo), ("max_pixels", hi)):
             if hasattr(ip, attr):
                 setattr(ip, attr, value)
+    elif mtype == "fast_vlm":  # a CNN tower: image_size / output stride tokens per side, no crop
+        stride = getattr(processor, "patch_size", None) or 32
+        size = image_size or (getattr(ip, "size", None) or {}).get("height") or 256
+        if size % stride:
+            raise DegustaError(f"{key}: {size} must be a multiple of the vision tower's output stride {stride}")
+        ip.size = {"height": size, "width": size}
+        ip.crop_size = {"height": size, "width": size}
+        ip.do_center_crop = False
     elif image_size:
         ip.size = {"height": image_size, "width": image_size}
 
@@ -140,3 +148,43 @@ def tokens_per_image(processor, fmt: ChatFormat, image_token_id: int) -> int:
                     add_special_tokens=False)
     ids = enc["input_ids"][0]
     return int(sum(1 for i in ids if i == image_token_id))
+
+
+def image_tokens_per_side(processor, model_config) -> int | None:
+    """Image tokens along one side of a (square, one-tile) image with this budget; None if unknown."""
+    ip = processor.image_processor
+    mtype = getattr(model_config, "model_type", "")
+    if mtype == "idefics3":
+        if getattr(ip, "do_image_splitting", False):
+            return None  # tiles: several token grids per image
+        size = (getattr(ip, "max_image_size", None) or {}).get("longest_edge")
+        unit = model_config.vision_config.patch_size * model_config.scale_factor
+        return size // unit if size else None
+    if mtype == "fast_vlm":
+        size = (getattr(ip, "size", None) or {}).get("height")
+        stride = getattr(processor, "patch_size", None)
+        return size // stride if size and stride else None
+    if mtype in ("qwen2_vl", "qwen2_5_vl"):
+        vc = model_config.vision_config
+        unit = getattr(vc, "patch_size", 14) * getattr(vc, "spatial_merge_size", 2)
+        pixels = (getattr(ip, "size", None) or {}).get("longest_edge") or getattr(ip, "max_pixels", None)
+        return int(pixels ** 0.5) // unit if pixels else None
+    return None
+
+
+def check_grid_resolution(processor, model_config, grid, key: str = "model.image_size") -> None:
+    """Refuse an image budget whose image tokens are coarser than the grid's cells.
+
+    With fewer image tokens per side than grid cells per side, no image token covers a single cell, so
+    the model cannot tell which cell an object is in: a grid method cannot be learned or answered.
+    """
+    n = image_tokens_per_side(processor, model_config)
+    need = max(grid.rows, grid.cols)
+    if n is not None and n < need:
+        mtype, vc = getattr(model_config, "model_type", ""), model_config.vision_config
+        unit = (vc.patch_size * model_config.scale_factor if mtype == "idefics3" else
+                processor.patch_size if mtype == "fast_vlm" else
+                getattr(vc, "patch_size", 14) * getattr(vc, "spatial_merge_size", 2))
+        raise DegustaError(f"{key}: images give the model {n} x {n} image tokens, fewer than the {grid.rows}x{grid.cols} grid's "
+                           f"{need} cells per side, so it cannot see which cell an object is in; use at least "
+                           f"{need * unit} px per image (one token per {unit} px) or a coarser grid")

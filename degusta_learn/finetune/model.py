@@ -89,8 +89,8 @@ def load_processor(model_id_or_path: str, key: str = "model"):
     source = check_model_source(model_id_or_path, key)
     try:
         processor = AutoProcessor.from_pretrained(source, local_files_only=True)
-    except (OSError, ValueError) as e:
-        raise DegustaError(f"{key}: cannot load the processor of {model_id_or_path!r}: {e}") from None
+    except Exception as e:  # a missing, corrupt or foreign file: whatever the library raises, one line
+        raise DegustaError(f"{key}: cannot load the processor of {model_id_or_path!r}: {_first_line(e)}") from None
     tok = getattr(processor, "tokenizer", None)
     if tok is None:
         raise DegustaError(f"{key}: {model_id_or_path!r} has no tokenizer in its processor (not a VLM?)")
@@ -126,13 +126,24 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
         extra = {"quantization_config": quantization_config, "device_map": {"": device}}
     try:
         model = AutoModelForImageTextToText.from_pretrained(source, dtype=torch_dtype, local_files_only=True, **extra)
-    except (OSError, ValueError, KeyError) as e:
-        raise DegustaError(f"{key}: cannot load {model_id_or_path!r} as an image-text-to-text model: {e}") from None
+    except Exception as e:  # corrupt weights, a config that does not match them, a missing library (timm), ...
+        raise DegustaError(f"{key}: cannot load {model_id_or_path!r} as an image-text-to-text model: "
+                           f"{_first_line(e)}") from None
+    n_vocab = len(processor.tokenizer)
+    emb = model.get_input_embeddings()
+    if emb is not None and emb.num_embeddings < n_vocab:  # a processor from another model: ids would overflow
+        raise DegustaError(f"{key}: {model_id_or_path!r}: its tokenizer has {n_vocab} tokens but the model embeds "
+                           f"only {emb.num_embeddings}; the processor files belong to another model")
     if adapter:
         model = load_adapter(model, adapter, trainable=trainable_adapter)
     if quantization_config is None:
         model = model.to(device)
     return model.eval(), processor
+
+
+def _first_line(e: Exception) -> str:
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0] if text else ''}"[:400]
 
 
 def load_adapter(model, adapter: str | Path, trainable: bool = False):

@@ -27,7 +27,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json
 
 TINY_KINDS = ("idefics3", "qwen2vl")
-TINY_VERSION = 2  # bump when the tiny builders change, so stale cached folders are rebuilt
+TINY_VERSION = 3  # bump when the tiny builders change, so stale cached folders are rebuilt
 
 # Paper prompts (appendix) and the words every answer uses: the tokenizer's training text.
 _PAPER_PROMPTS = (
@@ -134,14 +134,15 @@ def _wrap(tok, cls, special: list[str], **tokens):
     return wrapped
 
 
-def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: int = 8, hidden: int = 64,
+def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: int = 4, hidden: int = 64,
                         layers: int = 2, seed: int = 0) -> Path:
     """Build and save a random-weight tiny Idefics3 (SmolVLM architecture) with its processor.
 
     Args:
         out_dir: folder to write (created; existing files are overwritten).
         image_size: side of the one square tile per image, in pixels.
-        patch_size: vision patch side; image_size / patch_size must divide by the scale factor 2.
+        patch_size: vision patch side; image_size / patch_size must divide by the scale factor 2. The
+            defaults give 8 x 8 image tokens per image: enough to resolve an 8 x 8 grid.
         hidden: text hidden size (the vision tower uses hidden // 2).
         layers: text decoder layers.
         seed: weight initialisation seed.
@@ -149,28 +150,43 @@ def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: i
     Returns:
         `out_dir` as a Path, loadable with `load_vlm`.
     """
-    import torch
-    from transformers import (Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessor,
-                              Idefics3Processor, PreTrainedTokenizerFast)
+    from transformers import PreTrainedTokenizerFast
 
-    scale = 2
-    if (image_size // patch_size) % scale or image_size % patch_size:
-        raise DegustaError(f"image_size {image_size} / patch_size {patch_size} must be a whole number "
-                           f"divisible by the scale factor {scale}")
     tokenizer = _wrap(train_tokenizer(IDEFICS3_SPECIAL), PreTrainedTokenizerFast, IDEFICS3_SPECIAL,
-                      bos_token="<|im_start|>", eos_token="<end_of_utterance>", pad_token="<|im_end|>",
+                      **IDEFICS3_ROLES)
+    model, processor = idefics3(tokenizer, image_size, patch_size, 2,
+                                vision=dict(hidden_size=hidden // 2, intermediate_size=hidden, num_hidden_layers=2,
+                                            num_attention_heads=4),
+                                text=dict(hidden_size=hidden, intermediate_size=2 * hidden, num_hidden_layers=layers,
+                                          num_attention_heads=4, num_key_value_heads=2), seed=seed)
+    return _save(out_dir, model, processor, "idefics3")
+
+
+IDEFICS3_ROLES = dict(bos_token="<|im_start|>", eos_token="<end_of_utterance>", pad_token="<|im_end|>",
                       unk_token="<|endoftext|>")
+
+
+def idefics3(tokenizer, image_size: int, patch_size: int, scale_factor: int, vision: dict, text: dict,
+             seed: int = 0):
+    """(random-weight Idefics3ForConditionalGeneration, Idefics3Processor) of the given sizes.
+
+    One tile per image (no splitting): an image costs (image_size / patch_size)^2 / scale_factor^2 image
+    tokens + 3 wrapper tokens. `vision` / `text` are extra Idefics3 vision / llama text config values.
+    """
+    import torch
+    from transformers import Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessor, Idefics3Processor
+
+    if image_size % patch_size or (image_size // patch_size) % scale_factor:
+        raise DegustaError(f"image_size {image_size} / patch_size {patch_size} must be a whole number "
+                           f"divisible by the scale factor {scale_factor}")
     ids = {t: tokenizer.convert_tokens_to_ids(t) for t in IDEFICS3_SPECIAL}
-    image_seq_len = (image_size // patch_size) ** 2 // scale**2
+    image_seq_len = (image_size // patch_size) ** 2 // scale_factor**2
     config = Idefics3Config(
-        image_token_id=ids["<image>"], pad_token_id=ids["<|im_end|>"], scale_factor=scale,
-        vision_config=dict(hidden_size=hidden // 2, intermediate_size=hidden, num_hidden_layers=2,
-                           num_attention_heads=4, image_size=image_size, patch_size=patch_size),
-        text_config=dict(model_type="llama", vocab_size=len(tokenizer), hidden_size=hidden,
-                         intermediate_size=2 * hidden, num_hidden_layers=layers, num_attention_heads=4,
-                         num_key_value_heads=2, max_position_embeddings=4096, pad_token_id=ids["<|im_end|>"],
-                         bos_token_id=ids["<|im_start|>"], eos_token_id=ids["<end_of_utterance>"],
-                         tie_word_embeddings=False),
+        image_token_id=ids["<image>"], pad_token_id=ids["<|im_end|>"], scale_factor=scale_factor,
+        vision_config=dict(image_size=image_size, patch_size=patch_size, **vision),
+        text_config=dict(model_type="llama", vocab_size=len(tokenizer), max_position_embeddings=4096,
+                         pad_token_id=ids["<|im_end|>"], bos_token_id=ids["<|im_start|>"],
+                         eos_token_id=ids["<end_of_utterance>"], tie_word_embeddings=False, **text),
     )
     torch.manual_seed(seed)
     model = Idefics3ForConditionalGeneration(config)
@@ -179,15 +195,15 @@ def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: i
         do_image_splitting=False, size={"longest_edge": image_size}, max_image_size={"longest_edge": image_size})
     processor = Idefics3Processor(image_processor=image_processor, tokenizer=tokenizer,
                                   image_seq_len=image_seq_len, chat_template=IDEFICS3_CHAT_TEMPLATE)
-    return _save(out_dir, model, processor, "idefics3")
+    return model, processor
 
 
-def build_tiny_qwen2vl(out_dir: str | Path, image_size: int = 56, hidden: int = 32, layers: int = 4,
+def build_tiny_qwen2vl(out_dir: str | Path, image_size: int = 224, hidden: int = 32, layers: int = 4,
                        seed: int = 0) -> Path:
     """Build and save a random-weight tiny Qwen2-VL with a Qwen2 tokenizer and its processor.
 
     `image_size` must be a multiple of 28 (patch 14 x spatial merge 2); an image costs
-    (image_size / 28)^2 tokens. Needs torchvision (the Qwen2-VL video processor).
+    (image_size / 28)^2 tokens (the default 224 px: 8 x 8, enough to resolve an 8 x 8 grid). Needs torchvision (the Qwen2-VL video processor).
     """
     import torch
     from transformers import (Qwen2TokenizerFast, Qwen2VLConfig, Qwen2VLForConditionalGeneration,

@@ -43,9 +43,10 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
 def prepare_model(cfg: FinetuneConfig):
     """(trainable model, processor) per cfg.model / cfg.lora, image budget set, context checked."""
     from degusta_learn.finetune import lora
-    from degusta_learn.finetune.inputs import set_image_budget
+    from degusta_learn.finetune.inputs import check_grid_resolution, set_image_budget
     from degusta_learn.finetune.model import load_vlm
     from degusta_learn.finetune.tiny import ensure_tiny
+    from degusta_learn.prompting import answer_kind
 
     if cfg.model.build_tiny:
         ensure_tiny(cfg.model.name, cfg.model.build_tiny)
@@ -56,6 +57,8 @@ def prepare_model(cfg: FinetuneConfig):
     model, processor = load_vlm(cfg.model.name, device=device, dtype=cfg.model.dtype, key="model.name",
                                 quantization_config=quant)
     set_image_budget(processor, model.config, cfg.model.image_size)
+    if answer_kind(cfg.method) == "grid":
+        check_grid_resolution(processor, model.config, cfg.data.grid, key="model.image_size")
     context = getattr(model.config.get_text_config(), "max_position_embeddings", None)
     if context and cfg.data.max_length > context:
         raise DegustaError(f"data.max_length: {cfg.data.max_length} exceeds the model's context of {context} "
