@@ -90,6 +90,7 @@ METHODS: dict[str, str] = {
 TRAINERS: dict[str, str] = {
     "learned": "degusta_learn.baselines.learned:TRAINER",
     "finetune": "degusta_learn.finetune.train:TRAINER",
+    "pretrain": "degusta_learn.finetune.pretrain.train:TRAINER",
 }
 
 

@@ -59,6 +59,8 @@ class Example:
     answer: str
     participant: str = ""
     target: int = -1
+    meta: dict = field(default_factory=dict)
+    """What scoring needs beyond the answer text (perception examples: task and ground truth)."""
 
 
 def image_group(name: str) -> str:

@@ -2,7 +2,8 @@
 
 `FinetuneModule` trains with `lm_loss` (answer tokens only) and validates by GENERATING answers for
 held-out (val) participants: each answer is parsed, aggregated and scored like any method's
-prediction, and val/parse_rate, val/rmsd, val/object_accuracy (plus val/loss) are logged. With LoRA,
+prediction, and val/parse_rate, val/rmsd, val/set_rmsd, val/object_accuracy, val/count_error (plus
+val/loss) are logged. val/set_rmsd charges every unmatched object, so it is the one to select on. With LoRA,
 Lightning checkpoints hold only the trainable tensors (+ optimizer state), never the frozen base;
 the adapter itself is written with `PeftModel.save_pretrained` to `<run>/adapter/` whenever a
 checkpoint is saved (and at the end), loadable by plain peft.
@@ -30,12 +31,15 @@ class FinetuneModule(L.LightningModule):
         self.model, self.processor, self.cfg = model, processor, cfg
         self.ds, self.grid, self.kind = ds, grid, kind
         self.run_dir = run_dir
-        self.lora = cfg.lora.mode in ("lora", "qlora")
+        self.lora = getattr(getattr(cfg, "lora", None), "mode", "full") in ("lora", "qlora")
         self.strict_loading = not self.lora  # LoRA checkpoints hold the adapter tensors only
         self._val: list[dict] = []
         self._saved_step = -1
 
     # ------------------------------------------------------------------ training
+    def on_train_epoch_start(self) -> None:
+        freeze_batch_norms(self.model)  # Lightning has just put every module in train mode
+
     def training_step(self, batch, batch_idx):
         loss, n = lm_loss(self.model, batch)
         bs = batch["input_ids"].shape[0]
@@ -45,7 +49,7 @@ class FinetuneModule(L.LightningModule):
 
     def configure_optimizers(self):
         o = self.cfg.optim
-        params = [p for p in self.model.parameters() if p.requires_grad]
+        params = [p for p in self.parameters() if p.requires_grad]  # the model and any auxiliary head
         opt = torch.optim.AdamW(params, lr=o.lr, weight_decay=o.weight_decay, betas=(0.9, 0.999))
         total = max(1, int(self.trainer.estimated_stepping_batches))
         warm = min(o.warmup_steps, total)
@@ -91,7 +95,8 @@ class FinetuneModule(L.LightningModule):
         placements, diag = aggregate([items], self.kind, self.grid)
         gt = self.ds.arrangement(ex.participant, ex.target)
         s = score_prediction(self.ds.catalog, gt, placements, diag["failed"])
-        return {"parsed": items is not None, "rmsd": s.rmsd, "acc": s.object_accuracy, "text": text}
+        return {"parsed": items is not None, "rmsd": s.rmsd, "acc": s.object_accuracy, "set_rmsd": s.set_rmsd,
+                "count_error": s.count_error, "text": text}
 
     def on_validation_epoch_end(self):
         if not self._val:
@@ -100,7 +105,10 @@ class FinetuneModule(L.LightningModule):
         rmsds = [r["rmsd"] for r in rows if not math.isnan(r["rmsd"])]
         stats = {"val/parse_rate": sum(r["parsed"] for r in rows) / len(rows),
                  "val/rmsd": sum(rmsds) / len(rmsds) if rmsds else float("nan"),
-                 "val/object_accuracy": sum(r["acc"] for r in rows) / len(rows)}
+                 "val/object_accuracy": sum(r["acc"] for r in rows) / len(rows),
+                 # set-aware: an unmatched object costs SET_PENALTY, so a one-object answer cannot look best
+                 "val/set_rmsd": sum(r["set_rmsd"] for r in rows) / len(rows),
+                 "val/count_error": sum(r["count_error"] for r in rows) / len(rows)}
         if "parsed_free" in rows[0]:
             stats["val/parse_rate_unconstrained"] = sum(r["parsed_free"] for r in rows) / len(rows)
         self.log_dict(stats, prog_bar=True, sync_dist=True)
@@ -125,19 +133,21 @@ class FinetuneModule(L.LightningModule):
 class FinetuneData(L.LightningDataModule):
     """Train batches (collated) and val batches ((collated, examples) for loss + generation)."""
 
-    def __init__(self, train, val, collator, batch_size: int, num_workers: int = 0):
+    def __init__(self, train, val, collator, batch_size: int, num_workers: int = 0, sampler=None, val_collator=None):
         super().__init__()
         self.train, self.val, self.collator = train, val, collator
-        self.batch_size, self.num_workers = batch_size, num_workers
+        self.val_collator = val_collator or collator
+        self.batch_size, self.num_workers, self.sampler = batch_size, num_workers, sampler
 
     def train_dataloader(self):
-        return DataLoader(self.train, batch_size=self.batch_size, shuffle=True, collate_fn=self.collator,
-                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+        return DataLoader(self.train, batch_size=self.batch_size, shuffle=self.sampler is None, sampler=self.sampler,
+                          collate_fn=self.collator, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0)
 
     def val_dataloader(self):
         if self.val is None or len(self.val) == 0:
             return []
-        return DataLoader(self.val, batch_size=self.batch_size, shuffle=False, collate_fn=_ValCollate(self.collator),
+        return DataLoader(self.val, batch_size=self.batch_size, shuffle=False, collate_fn=_ValCollate(self.val_collator),
                           num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
 
 
@@ -147,6 +157,20 @@ class _ValCollate:
 
     def __call__(self, examples):
         return self.collator(examples), examples
+
+
+def freeze_batch_norms(model) -> None:
+    """Keep frozen BatchNorm layers (e.g. a LoRA-adapted model's CNN vision tower) in eval mode.
+
+    In train mode a BatchNorm normalises with the batch's statistics and overwrites its running ones even
+    when its weights are frozen; the adapter would then be trained against a base that the saved model,
+    loaded with the original running statistics, is not.
+    """
+    from torch import nn
+
+    for m in model.modules():
+        if isinstance(m, nn.modules.batchnorm._BatchNorm) and not any(p.requires_grad for p in m.parameters()):
+            m.eval()
 
 
 def enable_gradient_checkpointing(model) -> None:

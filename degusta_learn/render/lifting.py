@@ -217,10 +217,15 @@ class Renderer:
             if not objs:
                 raise DegustaError(f"object type {type_!r} has no objects in the catalog "
                                    f"(types: {', '.join(self.catalog.types)})")
-            self._gomo_cache[type_] = self._draw_gomo(type_, objs)
+            self._gomo_cache[type_] = self.gomo_sheet(type_, objs)
         return self._gomo_cache[type_].copy()
 
-    def _draw_gomo(self, type_: str, objs) -> Image.Image:
+    def gomo_sheet(self, type_: str, objs: Sequence) -> Image.Image:
+        """A GoMO sheet of the given objects of one type, in the given order (`gomo` draws all of them).
+
+        Perception pretraining draws random subsets in random order, so a sheet position says nothing
+        about an id without looking at the sheet.
+        """
         s = self.size
         title_h, pad = round(s * 0.09), round(s * 0.02)
         n = len(objs)

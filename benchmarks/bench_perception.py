@@ -1,0 +1,125 @@
+"""Perception of the tiny base VLM on freshly rendered held-out scenes and marked-object sheets.
+
+Scores `checkpoints/tiny_vlm_base` (or --model) on perception questions drawn from a seed the model never
+trained or validated on: object-set F1 (type and id), exact cell set per named object, direction
+accuracy (plates left out: their direction cannot be seen), GoMO mark-id accuracy, cell IoU and the
+parse rate, overall and by the number of scenes in the prompt. Constrained decoding, greedy, one answer
+per question. Also plots the pretraining validation curve recorded in the model folder.
+
+Usage:
+    python benchmarks/bench_perception.py                               # 600 questions, ~10 CPU minutes
+    python benchmarks/bench_perception.py --n 60 --out runs/bench_perception_quick
+    python benchmarks/bench_perception.py --write-card                  # also perception.json + model card
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+os.environ["HF_HUB_OFFLINE"] = "1"
+
+BENCH_SEED = 2_000_003  # training uses seed 0 and validation seed 1,000,003: never these examples
+
+
+def plot_curve(curve: list[dict], out: Path) -> Path | None:
+    """Validation perception scores against training steps (PNG)."""
+    if not curve:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=120)
+    steps = [r["step"] for r in curve]
+    for key, label in (("object_f1", "object-set F1"), ("cells_exact", "exact cell set"),
+                       ("direction", "direction (no plates)"), ("mark_id", "GoMO mark id")):
+        ax.plot(steps, [r.get(f"val/{key}", float("nan")) for r in curve], marker="o", ms=3, label=label)
+    ax.axhline(0.9, color="grey", lw=0.8, ls="--", label="target 0.9")
+    ax.set(xlabel="training step", ylabel="validation score", ylim=(0, 1.02),
+           title="Tiny base VLM: perception during pretraining (held-out validation)")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--n", type=int, default=600, help="questions (>= 500 held-out images by default)")
+    ap.add_argument("--seed", type=int, default=BENCH_SEED)
+    ap.add_argument("--out", default="runs/bench_perception")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--write-card", action="store_true", help="write perception.json into the model folder "
+                    "and re-render its model card")
+    ap.add_argument("--plot", default="docs/images/base_perception_curve.png")
+    args = ap.parse_args()
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from degusta_learn.fileio import atomic_write_json, read_json
+    from degusta_learn.finetune.generate import generate_answers
+    from degusta_learn.finetune.grammar import AnswerGrammar
+    from degusta_learn.finetune.inputs import set_image_budget
+    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.finetune.pretrain.export import BASE_META, PERCEPTION, write_card
+    from degusta_learn.finetune.pretrain.score import score_answer, summarize
+    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import default_catalog, default_tables
+
+    folder = Path(args.model)
+    meta = read_json(folder / BASE_META)
+    model, processor = load_vlm(str(folder), device="cpu", dtype="float32")
+    set_image_budget(processor, model.config, meta["image_size"])
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    grid = Grid(meta["grid"]["rows"], meta["grid"]["cols"])
+    examples = PerceptionExamples(catalog, tables, grid, meta["render_size"], args.seed, args.n,
+                                  TaskMix(lists=0.7, describe=0.1, gomo=0.2), block=1)
+    grammar = AnswerGrammar("grid", catalog, grid)
+    rows, t0 = [], time.time()
+    for i in range(len(examples)):
+        ex = examples[i]
+        located = ex.meta["task"] != "gomo"
+        text = generate_answers(model, processor, ex.prompt, n=1, temperature=0.0,
+                                max_new_tokens=320 if located else 8, constrained=located,
+                                grammar=grammar if located else None)[0].text
+        rows.append({**score_answer(ex, text, catalog, grid), "scenes": ex.meta.get("scenes", 1)})
+        if (i + 1) % 100 == 0:
+            print(f"{i + 1}/{len(examples)} questions, {time.time() - t0:.0f} s", flush=True)
+    scores = summarize(rows)
+    by_scenes = {str(k): summarize([r for r in rows if r["task"] == "list" and r["scenes"] == k])
+                 for k in (1, 2, 3, 4)}
+    n_images = sum(r.get("scenes", 1) for r in rows)
+    result = {"model": str(folder), "seed": args.seed, "n_questions": len(rows), "n_images": n_images,
+              "seconds": round(time.time() - t0, 1), "scores": scores,
+              "object_f1_by_scenes": {k: v["object_f1"] for k, v in by_scenes.items()},
+              "cells_exact_by_scenes": {k: v["cells_exact"] for k, v in by_scenes.items()}}
+    out = Path(args.out)
+    atomic_write_json(out / "perception.json", result)
+    print(f"\n{len(rows)} questions about {n_images} held-out images ({result['seconds']:.0f} s):\n")
+    print("| object-set F1 | exact cell set | direction (no plates) | GoMO mark id | cell IoU | parse rate |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    print("| " + " | ".join(f"{scores[k]:.3f}" for k in ("object_f1", "cells_exact", "direction", "mark_id",
+                                                          "cell_iou", "parse_rate")) + " |")
+    print("\nobject-set F1 by scenes in the prompt:", json.dumps(
+        {k: round(v, 3) for k, v in result["object_f1_by_scenes"].items()}))
+    plot = plot_curve(meta.get("validation_curve") or [], Path(args.plot))
+    if plot:
+        print(f"training curve: {plot}")
+    if args.write_card:
+        atomic_write_json(folder / PERCEPTION, result)
+        print(f"wrote {folder / PERCEPTION} and {write_card(folder)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,119 @@
+"""The architecture of the tiny base VLM: a FastVLM (convolutional vision tower + Qwen2 decoder), tiny.
+
+Why not SmolVLM's Idefics3 (a ViT tower)? Trained from random weights on this CPU, a ViT tower barely
+learns to see small objects on textured tables: on the dense "which objects cover this cell" probe it
+stays near the label prior after 20,000 images, where a small ResNet of the same cost is far below it
+after 2,000 (docs/finetune.md, "Why the tiny base is a FastVLM"). ViTs lack the locality bias that
+makes a CNN learn from little data; a pretrained SmolVLM brings its vision from billions of images.
+FastVLM (Apple, CVPR 2025; `FastVlmForConditionalGeneration` in transformers) is the real architecture
+built around a convolutional tower: any timm backbone (`TimmWrapperConfig`), its last feature map
+flattened into image tokens, a 2-layer projector, a Qwen2 decoder.
+
+Sizes: 256 px images through a ResNet (output stride 32) give an 8 x 8 feature map: 64 image tokens,
+one per ~cell of the 8 x 8 grid (a GMA cell is 29 px at 256 px). The tokenizer is the domain tokenizer
+(`finetune.vocab`: ids, cells and answer literals are single tokens) with a Qwen-style chat template.
+
+Example:
+    model, processor = build_base(BaseArchitecture(), seed=0)    # random weights, ~5 M parameters
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from degusta_learn.errors import DegustaError
+
+SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<image>"]
+ROLES = dict(eos_token="<|im_end|>", pad_token="<|endoftext|>", unk_token=None)
+OUTPUT_STRIDE = 32  # a timm ResNet's last feature map is 1/32 of the image side
+# Qwen2-VL-Instruct's chat template without system prompt and video branch; <image> expands to the tokens.
+CHAT_TEMPLATE = (
+    "{% for message in messages %}<|im_start|>{{ message['role'] }}\n{% if message['content'] is string %}"
+    "{{ message['content'] }}{% else %}{% for c in message['content'] %}{% if c['type'] == 'image' %}<image>"
+    "{% elif c['type'] == 'text' %}{{ c['text'] }}{% endif %}{% endfor %}{% endif %}<|im_end|>\n{% endfor %}"
+    "{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
+
+
+@dataclass
+class BaseArchitecture:
+    """The `model:` section of a pretrain config: sizes of the FastVLM built from random weights."""
+
+    image_size: int = 256
+    """Pixels per (square) image side; lifted images are drawn at this size. image_size / 32 tokens per side."""
+    vision_channels: list[int] = field(default_factory=lambda: [32, 64, 128, 256])
+    """Widths of the four ResNet stages (timm `resnet18` with these channels); the last is the feature size."""
+    vision_layers: list[int] = field(default_factory=lambda: [1, 1, 2, 1])
+    """Residual blocks per stage."""
+    vision_stem: int = 32
+    """Width of the ResNet stem."""
+    text_hidden: int = 256
+    """Language model (Qwen2) width."""
+    text_layers: int = 4
+    """Language model depth."""
+    text_heads: int = 4
+    """Language model attention heads."""
+    text_kv_heads: int = 2
+    """Key/value heads (grouped-query attention)."""
+    text_intermediate: int = 768
+    """Language model MLP width."""
+    vocab_size: int = 2048
+    """BPE merges budget of the domain tokenizer (+ special tokens and answer literals)."""
+
+    def __post_init__(self):
+        for key in ("image_size", "vision_stem", "text_hidden", "text_layers", "text_heads", "text_kv_heads",
+                    "text_intermediate", "vocab_size"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise DegustaError(f"model.{key}: expected a positive integer, got {value!r}")
+        for key in ("vision_channels", "vision_layers"):
+            value = getattr(self, key)
+            if len(value) != 4 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in value):
+                raise DegustaError(f"model.{key}: expected 4 positive integers (one per ResNet stage), got {value!r}")
+        if self.image_size % OUTPUT_STRIDE:
+            raise DegustaError(f"model.image_size: {self.image_size} must be a multiple of {OUTPUT_STRIDE} "
+                               "(the vision tower's output stride)")
+        if self.text_hidden % self.text_heads or self.text_heads % self.text_kv_heads:
+            raise DegustaError(f"model.text_heads: {self.text_heads} must divide model.text_hidden "
+                               f"{self.text_hidden} and be divisible by model.text_kv_heads {self.text_kv_heads}")
+
+    @property
+    def tokens_per_side(self) -> int:
+        return self.image_size // OUTPUT_STRIDE
+
+    @property
+    def tokens_per_image(self) -> int:
+        return self.tokens_per_side**2
+
+
+def build_base(arch: BaseArchitecture, seed: int = 0):
+    """(random-weight FastVlmForConditionalGeneration, LlavaProcessor with the domain tokenizer) per `arch`."""
+    import torch
+    from transformers import (CLIPImageProcessor, FastVlmConfig, FastVlmForConditionalGeneration, LlavaProcessor,
+                              PreTrainedTokenizerFast, TimmWrapperConfig)
+
+    from degusta_learn.finetune.tiny import _set_generation_ids, _wrap
+    from degusta_learn.finetune.vocab import domain_tokenizer
+
+    tokenizer = _wrap(domain_tokenizer(SPECIAL, arch.vocab_size), PreTrainedTokenizerFast, SPECIAL, **ROLES)
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in SPECIAL}
+    vision = TimmWrapperConfig(architecture="resnet18", do_pooling=False, hidden_size=arch.vision_channels[-1],
+                               model_args={"channels": list(arch.vision_channels), "layers": list(arch.vision_layers),
+                                           "stem_width": arch.vision_stem})
+    config = FastVlmConfig(
+        vision_config=vision, image_token_index=ids["<image>"], image_seq_length=arch.tokens_per_image,
+        text_config=dict(model_type="qwen2", vocab_size=len(tokenizer), hidden_size=arch.text_hidden,
+                         intermediate_size=arch.text_intermediate, num_hidden_layers=arch.text_layers,
+                         num_attention_heads=arch.text_heads, num_key_value_heads=arch.text_kv_heads,
+                         max_position_embeddings=4096, bos_token_id=None, eos_token_id=ids["<|im_end|>"],
+                         pad_token_id=ids["<|endoftext|>"], tie_word_embeddings=False))
+    torch.manual_seed(seed)
+    model = FastVlmForConditionalGeneration(config)
+    _set_generation_ids(model, tokenizer, ids["<|im_end|>"], ids["<|endoftext|>"])
+    side = {"height": arch.image_size, "width": arch.image_size}
+    image_processor = CLIPImageProcessor(size=dict(side), crop_size=dict(side), do_center_crop=False,
+                                         image_mean=[0.5, 0.5, 0.5], image_std=[0.5, 0.5, 0.5])
+    processor = LlavaProcessor(image_processor=image_processor, tokenizer=tokenizer, patch_size=OUTPUT_STRIDE,
+                               vision_feature_select_strategy="full", image_token="<image>",
+                               num_additional_image_tokens=0, chat_template=CHAT_TEMPLATE)
+    return model, processor

@@ -1,0 +1,182 @@
+"""Write a pretrained base as a plain Hugging Face model folder with its facts and a model card.
+
+The folder holds what `save_pretrained` writes for the model (config.json, model.safetensors,
+generation_config.json) and the processor (tokenizer, image processor, chat template), plus
+`degusta_base.json` (architecture, image budget, training facts, the validation curve), the resolved
+training config (`pretrain_config.yaml`) and `README.md`, the model card. `bench_perception.py`
+adds `perception.json` (its held-out scores) and re-renders the card with `write_card`.
+
+The folder is written beside its destination and moved into place, so a reader never sees half of it.
+
+Example:
+    export_base(model, processor, cfg, Path("checkpoints/tiny_vlm_base"), run_dir, history)
+    write_card(Path("checkpoints/tiny_vlm_base"))          # after perception.json changed
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import shutil
+from pathlib import Path
+
+from degusta_learn.fileio import atomic_write_text, read_json
+
+BASE_META = "degusta_base.json"
+PERCEPTION = "perception.json"
+COMMAND = "degusta train --config configs/pretrain_tiny_vlm_cpu.yaml"
+
+
+def training_curve(run_dir: Path) -> list[dict]:
+    """Validation rows {step, val/...} of every CSV log version of a run (resumed runs included), by step."""
+    rows: dict[int, dict] = {}
+    for path in sorted((run_dir / "csv").glob("version_*/metrics.csv")):
+        with path.open(newline="") as f:
+            for row in csv.DictReader(f):
+                if not row.get("val/perception"):
+                    continue
+                step = int(float(row["step"]))
+                rows[step] = {"step": step, **{k: round(float(v), 4) for k, v in row.items()
+                                               if k.startswith("val/") and v not in ("", None)}}
+    return [rows[s] for s in sorted(rows)]
+
+
+def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None) -> Path:
+    """Save `model` + `processor` to `out` with degusta_base.json, pretrain_config.yaml and README.md."""
+    from degusta_learn.config import to_dict
+    from degusta_learn.fileio import atomic_write_json
+
+    out = Path(out)
+    tmp = out.parent / f".{out.name}.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    model.save_pretrained(str(tmp))
+    processor.save_pretrained(str(tmp))
+    curve = training_curve(run_dir)
+    arch = cfg.model
+    n_params = sum(p.numel() for p in model.parameters())
+    atomic_write_json(tmp / BASE_META, {
+        "kind": "degusta_base", "architecture": dataclasses.asdict(arch), "parameters": n_params,
+        "image_size": arch.image_size, "render_size": arch.image_size, "tokens_per_image": arch.tokens_per_image,
+        "grid": {"rows": cfg.data.grid.rows, "cols": cfg.data.grid.cols},
+        # the prompt layout it saw in pretraining (object sheets composed into one image); the hf backend
+        # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
+        "prompt": {"include": ["objects", "context", "target"], "compose": ["objects"]},
+        "catalog": cfg.dataset or "embedded default (125 objects, 5 tables)",
+        "training": {"command": COMMAND, "steps": steps, "batch_size": cfg.data.batch_size,
+                     "examples": steps * cfg.data.batch_size if steps else None, "lr": cfg.optim.lr,
+                     "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix)},
+        "validation_curve": curve,
+    })
+    if (run_dir / "config.yaml").is_file():
+        shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
+    else:
+        import yaml
+
+        atomic_write_text(tmp / "pretrain_config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    write_card(tmp, name=out.name, path=out)  # no perception.json yet: a benchmark of earlier weights does not describe these
+    old = out.parent / f".{out.name}.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if out.exists():
+        out.rename(old)
+    tmp.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
+    return out
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def write_card(folder: Path, name: str | None = None, path: Path | None = None) -> Path:
+    """(Re)write `folder/README.md` from degusta_base.json and, if present, perception.json.
+
+    `name` / `path`: the model's name and the folder users load (default: `folder`'s).
+    """
+    folder = Path(folder)
+    name, path = name or folder.name, Path(path or folder)
+    meta = read_json(folder / BASE_META)
+    bench = read_json(folder / PERCEPTION) if (folder / PERCEPTION).is_file() else None
+    a, t = meta["architecture"], meta["training"]
+    curve = meta.get("validation_curve") or []
+    last = curve[-1] if curve else {}
+    lines = [
+        "---", "license: mit", "library_name: transformers", "pipeline_tag: image-text-to-text",
+        "tags: [degusta_learn, fast_vlm, synthetic-data, tiny]", "---", "",
+        f"# {name}: a {meta['parameters'] / 1e6:.1f} M-parameter FastVLM that can see lifted table images", "",
+        "A miniature of a pretrained vision-language model, made by degusta_learn for CPU-sized experiments "
+        "with its DegustaBot prompts and LoRA fine-tuning. It has the architecture of FastVLM (Apple, CVPR 2025; "
+        "`FastVlmForConditionalGeneration` in transformers: a convolutional vision tower from timm, a 2-layer "
+        "projector, a Qwen2 decoder), scaled down, and was trained **from random weights** on perception "
+        "questions about randomly generated, style-free table scenes: which objects a grid-marked image shows "
+        "(type and catalog id), which grid cells each covers, which way it points, and which id is marked on "
+        "an object of a marked-object sheet. (Why not SmolVLM's ViT: from random weights on a CPU a ViT tower "
+        "barely learns to see small objects; see docs/finetune.md.)", "",
+        "It was **never shown anyone's table setting and never the DegustaBot preference question** "
+        "(\"my preferences ... set the table\"), so prompting it with that question is zero-shot, and "
+        "fine-tuning it on people's arrangements is the miniature of fine-tuning SmolVLM.", "",
+        "## Load", "", "```python",
+        "from transformers import AutoModelForImageTextToText, AutoProcessor",
+        f"model = AutoModelForImageTextToText.from_pretrained(\"{path.as_posix()}\")",
+        f"processor = AutoProcessor.from_pretrained(\"{path.as_posix()}\")",
+        "# or: from degusta_learn.finetune.model import load_vlm; model, processor = load_vlm(path)", "```", "",
+        "## Architecture and image budget", "",
+        f"- vision: timm `resnet18` layout with stage widths {a['vision_channels']}, blocks {a['vision_layers']}, "
+        f"stem {a['vision_stem']}; {a['image_size']} px images, output stride 32: an "
+        f"{a['image_size'] // 32} x {a['image_size'] // 32} feature map = {meta['tokens_per_image']} image tokens "
+        f"(about one per cell of the {meta['grid']['rows']} x {meta['grid']['cols']} grid)",
+        f"- projector: Linear + GELU + Linear to the decoder width {a['text_hidden']}",
+        f"- language model: Qwen2, width {a['text_hidden']}, layers {a['text_layers']}, heads {a['text_heads']} "
+        f"({a['text_kv_heads']} key/value heads), MLP {a['text_intermediate']}",
+        "- tokenizer: byte-level BPE trained on the task texts, with object ids 0-255, grid cells and the "
+        "literal pieces of the answer format as single tokens (an answer item costs ~13 tokens); Qwen-style chat "
+        "template (`<|im_start|>user ... <|im_end|>`)",
+        "- render images at the model's image size (no resizing, no crop); loading needs `timm`", "",
+        "## How it was trained", "",
+        f"`{t['command']}` (the resolved config is `pretrain_config.yaml` in this folder): {t['steps']} steps "
+        f"of {t['batch_size']} examples ({t['examples']} examples, every one a freshly rendered random scene), "
+        f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, all weights trained, fp32 on a CPU. "
+        f"Catalog and tables: {meta['catalog']}. Task mix: {t['mix']}.", "",
+        "## Perception scores", "",
+    ]
+    if bench:
+        lines += [f"On {bench['n_images']} freshly rendered held-out scenes and sheets "
+                  f"(`python benchmarks/bench_perception.py`, constrained decoding):", "",
+                  "| object-set F1 (type, id) | exact cell set | direction (no plates) | GoMO mark id | cell IoU | parse rate |",
+                  "|---:|---:|---:|---:|---:|---:|",
+                  "| " + " | ".join(_fmt(bench["scores"].get(k)) for k in
+                                   ("object_f1", "cells_exact", "direction", "mark_id", "cell_iou", "parse_rate")) + " |",
+                  ""]
+    if curve:
+        lines += [f"Validation during training ({len(curve)} validations; last at step {last['step']}):", "",
+                  "| step | object F1 | exact cells | direction | mark id | mean |", "|---:|---:|---:|---:|---:|---:|"]
+        shown = curve[:: max(1, len(curve) // 8)]
+        for row in shown + ([last] if shown[-1] is not last else []):
+            lines.append("| " + " | ".join([str(row["step"])] + [_fmt(row.get(f"val/{k}")) for k in
+                                             ("object_f1", "cells_exact", "direction", "mark_id", "perception")]) + " |")
+        lines.append("")
+    lines += [
+        "## Limits", "",
+        "- It knows the 125 objects and 5 tables it was trained on (the embedded default catalog); another "
+        "catalog needs pretraining again (`dataset:` in the config points at your catalog and tables).",
+        f"- Grid-marked images with the {meta['grid']['rows']} x {meta['grid']['cols']} grid at {a['image_size']} px "
+        "only; no unmarked (x, y) answers, no free text.",
+        "- A plate's direction cannot be seen (round and square plates look the same turned around); "
+        "directions are scored without plates.",
+        "- Tiny and trained on synthetic images: a tool for CPU experiments and tests, not a result about "
+        "real VLMs. Real runs fine-tune SmolVLM or Qwen2-VL on a GPU (configs/finetune_smolvlm_256m.yaml).", "",
+    ]
+    atomic_write_text(folder / "README.md", "\n".join(lines))
+    return folder / "README.md"
+
+
+def save_random_base(out: Path, arch=None, seed: int = 0) -> Path:
+    """An UNTRAINED base (random weights) exported like a pretrained one: for tests and smoke runs only."""
+    from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
+    from degusta_learn.finetune.pretrain.train import PretrainConfig
+
+    arch = arch or BaseArchitecture()
+    model, processor = build_base(arch, seed=seed)
+    out = Path(out)
+    return export_base(model, processor, PretrainConfig(model=arch, seed=seed), out, out.parent / f".{out.name}.norun",
+                       steps=0)

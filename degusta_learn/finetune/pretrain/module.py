@@ -1,0 +1,90 @@
+"""The LightningModule of perception pretraining: `FinetuneModule`'s training, a perception validation.
+
+Training is `FinetuneModule`'s (answer-only next-token loss on every weight, its optimizer and schedule)
+plus, with `data.dense_weight > 0`, the dense auxiliary loss on the image tokens (`dense.py`), whose
+head is trained with the model and left out of the export.
+Validation generates an answer to each held-out perception question — constrained to the answer grammar
+for `list` / `describe` questions, a few free tokens for `gomo` ones — scores it with `score.py` and
+logs val/loss, val/object_f1, val/cells_exact, val/cell_iou, val/direction, val/mark_id,
+val/parse_rate and their headline mean val/perception.
+"""
+
+from __future__ import annotations
+
+import math
+
+from degusta_learn.finetune.loss import lm_loss
+from degusta_learn.finetune.module import FinetuneModule
+
+GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain tokenizer) and the stop token
+
+
+class PerceptionModule(FinetuneModule):
+    """A full-weight VLM trained on perception questions (see the module docstring)."""
+
+    def __init__(self, model, processor, cfg, catalog, grid, n_labels: int = 0, side: int = 8):
+        super().__init__(model, processor, cfg, None, grid, "grid")
+        self.catalog = catalog
+        self._grammar = None
+        self.dense_weight = cfg.data.dense_weight
+        self.dense = None
+        self._tokens = None
+        if self.dense_weight > 0:
+            from degusta_learn.finetune.pretrain.dense import DenseHead, projector_of
+
+            hidden = model.config.get_text_config().hidden_size
+            self.dense = DenseHead(hidden, n_labels, side)
+            projector_of(model).register_forward_hook(self._capture)
+
+    def _capture(self, module, inputs, output) -> None:
+        self._tokens = output  # (n_images, tokens, hidden): the image tokens the decoder sees
+
+    def training_step(self, batch, batch_idx):
+        batch = dict(batch)
+        targets, keep = batch.pop("dense_targets", None), batch.pop("dense_keep", None)
+        self._tokens = None
+        loss, n = lm_loss(self.model, batch)
+        bs = batch["input_ids"].shape[0]
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        if self.dense is None or keep is None:
+            return loss
+        dense = self.dense.loss(self._tokens, targets, keep)
+        self.log("train/dense", dense, batch_size=bs)
+        return loss + self.dense_weight * dense
+
+    def grammar(self):
+        from degusta_learn.finetune.grammar import AnswerGrammar
+
+        if self._grammar is None:
+            self._grammar = AnswerGrammar("grid", self.catalog, self.grid)
+        return self._grammar
+
+    def answer(self, ex) -> str:
+        """The greedy answer to one perception example (constrained unless it asks for a mark id)."""
+        from degusta_learn.finetune.generate import generate_answers
+
+        located = ex.meta["task"] != "gomo"
+        return generate_answers(self.model, self.processor, ex.prompt, n=1, temperature=0.0,
+                                max_new_tokens=self.cfg.eval.max_new_tokens if located else GOMO_TOKENS,
+                                constrained=located and self.cfg.eval.constrained,
+                                grammar=self.grammar() if located else None)[0].text
+
+    def validation_step(self, batch, batch_idx):
+        from degusta_learn.finetune.pretrain.score import score_answer
+
+        inputs, examples = batch
+        loss, _ = lm_loss(self.model, inputs)
+        self.log("val/loss", loss, batch_size=len(examples), sync_dist=True)
+        for ex in examples:
+            self._val.append(score_answer(ex, self.answer(ex), self.catalog, self.grid))
+
+    def on_validation_epoch_end(self):
+        from degusta_learn.finetune.pretrain.score import summarize
+
+        if not self._val:
+            return
+        rows, self._val = self._val, []
+        stats = {f"val/{k}": float(v) for k, v in summarize(rows).items()
+                 if not k.startswith("n_") and not math.isnan(v)}
+        self.log_dict(stats, prog_bar=False, sync_dist=True)
+        self.last_val = stats

@@ -1,0 +1,247 @@
+"""Perception questions about random scenes: the pretraining examples of the tiny base VLM.
+
+Every example is rendered on the fly from random, style-free scenes (`scenes.random_scene`) and asks a
+*generic* question whose answer is in the toolkit's answer vocabulary. None of them is the DegustaBot
+preference question (no "my preferences", no "set the table"), so a model pretrained on them and then
+prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
+
+- ``list``: one to four grid-marked scenes named final_state_1.jpg .. final_state_K.jpg, each followed by
+  its placement-order line as in the DegustaBot prompt, optionally the composed object sheets in front
+  and an empty grid-marked table (initial_state_1.jpg) behind; the question names ONE of the scenes:
+  "List every object in final_state_2.jpg in its placement order ..." and the answer is that scene's
+  objects in the grid answer format (type, id, the cells the footprint intersects, the direction).
+- ``describe``: one scene; "Find the cup with object_reference_id 17 in final_state_1.jpg ..." and the
+  answer is a one-item list (its cells and direction).
+- ``gomo``: one GoMO sheet of a random subset of one type's objects in random order, so a position on
+  the sheet says nothing about an id without looking; "Which object_reference_id is marked on the
+  object in row 2, column 3 ...?" and the answer is the integer.
+
+`PerceptionExamples` maps a global index to an example deterministically (seed, index), so training is
+reproducible and resumable, any DataLoader worker renders the same example, and the validation and
+benchmark streams (other seeds) are images the model never trained on. Consecutive indices come in
+blocks of `block` examples of the same task and number of images, so a batch has little padding.
+
+Example:
+    ex = PerceptionExamples(catalog, tables, grid=Grid(8, 8), render_size=256, seed=0, length=1000)[0]
+    ex.prompt.parts, ex.answer, ex.meta["task"]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.data import Example, PromptOptions, adapt_prompt
+from degusta_learn.finetune.pretrain.scenes import random_scene
+
+TASKS = ("list", "describe", "gomo")
+GRID_FORMAT = ("[{'type': object_type, 'id': object_reference_id, 'position': [grid_cell_ids], "
+               "'cardinal_direction': direction}]")
+_DIRECTIONS_TEXT = "[N, NE, E, SE, S, SW, W, NW]"
+
+
+@dataclass
+class TaskMix:
+    """How often each perception task is drawn (relative weights), and the shape of `list` prompts."""
+
+    lists: float = 0.7
+    """Weight of `list` questions (one named scene among 1-4, answered in the grid format)."""
+    describe: float = 0.15
+    """Weight of `describe` questions (one object of one scene by type and id)."""
+    gomo: float = 0.15
+    """Weight of `gomo` questions (the id marked at a row and column of a GoMO sheet)."""
+    scenes: list[float] = field(default_factory=lambda: [0.4, 0.2, 0.15, 0.25])
+    """Relative weights of 1, 2, 3, 4 scenes in a `list` prompt."""
+    reading_order: float = 0.5
+    """Probability that a `list` question asks for reading order (by first cell) instead of placement order."""
+    objects_sheet: float = 0.5
+    """Probability that a `list` prompt starts with the composed object sheets (as DegustaBot prompts do)."""
+    empty_table: float = 0.5
+    """Probability that a `list` prompt ends with an empty grid-marked table (initial_state_1.jpg)."""
+
+    def __post_init__(self):
+        weights = [self.lists, self.describe, self.gomo]
+        if any(w < 0 for w in weights) or sum(weights) <= 0:
+            raise DegustaError("data.mix: task weights must be >= 0 and not all 0")
+        if len(self.scenes) != 4 or any(w < 0 for w in self.scenes) or sum(self.scenes) <= 0:
+            raise DegustaError("data.mix.scenes: expected 4 weights >= 0 (for 1, 2, 3, 4 scenes), not all 0")
+        for key in ("reading_order", "objects_sheet", "empty_table"):
+            if not 0 <= getattr(self, key) <= 1:
+                raise DegustaError(f"data.mix.{key}: expected a probability in [0, 1], got {getattr(self, key)}")
+
+    def probabilities(self) -> np.ndarray:
+        w = np.array([self.lists, self.describe, self.gomo], dtype=float)
+        return w / w.sum()
+
+
+def list_question(name: str, types: list[str], reading: bool = False) -> str:
+    order = "row by row from the top left (by the first grid cell it covers)" if reading else "in placement order"
+    return (f"List every object in {name} {order}, each as {{'type': object_type "
+            f"({', '.join(types)}), 'id': object_reference_id, 'position': [the grid cells it covers], "
+            f"'cardinal_direction': the closest of {_DIRECTIONS_TEXT} it points to, the top being N}}.")
+
+
+def describe_question(name: str, type_: str, object_id: int) -> str:
+    return (f"Where is the {type_} with object_reference_id {object_id} in {name}? Answer with a one-item list "
+            f"{GRID_FORMAT}, 'position' being the grid cells it covers.")
+
+
+def gomo_question(name: str, type_: str, n: int, row: int, col: int) -> str:
+    return (f"Which object_reference_id is marked on the {type_} in row {row}, column {col} of {name} "
+            f"({n} objects, rows from the top, columns from the left)? Give only the integer.")
+
+
+class PerceptionExamples:
+    """A map-style dataset: global index -> perception `Example` (see the module docstring)."""
+
+    def __init__(self, catalog, tables: dict, grid, render_size: int, seed: int, length: int,
+                 mix: TaskMix | None = None, block: int = 8, root=None, label_side: int = 8):
+        self.catalog, self.tables, self.grid = catalog, dict(tables), grid
+        self.render_size, self.seed, self.length = render_size, seed, length
+        self.mix, self.block, self.root = mix or TaskMix(), max(1, block), root
+        self.types = list(catalog.types)
+        self.label_side = label_side  # image tokens per side of the vision tower (token_labels)
+        self._renderer = None
+
+    def __len__(self) -> int:
+        return self.length
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            from degusta_learn.render.lifting import Renderer
+
+            self._renderer = Renderer(self.catalog, self.tables, self.root, size=self.render_size)
+        return self._renderer
+
+    def __getstate__(self):  # DataLoader workers build their own renderer (sprite caches)
+        return {**self.__dict__, "_renderer": None}
+
+    def shape_of(self, i: int) -> tuple[str, int, bool, bool]:
+        """(task, scenes, objects sheet, empty table) shared by the block of index i."""
+        rng = np.random.default_rng([self.seed, 1, i // self.block])
+        m = self.mix
+        task = TASKS[int(rng.choice(len(TASKS), p=m.probabilities()))]
+        k = 1 + int(rng.choice(4, p=np.asarray(m.scenes, float) / sum(m.scenes)))
+        sheet, empty = bool(rng.random() < m.objects_sheet), bool(rng.random() < m.empty_table)
+        if task != "list":
+            return task, 1, False, False
+        return task, k, sheet, empty
+
+    def __getitem__(self, i: int) -> Example:
+        if not 0 <= i < self.length:
+            raise IndexError(i)
+        task, k, sheet, empty = self.shape_of(i)
+        rng = np.random.default_rng([self.seed, 2, i])
+        build = {"list": self._list, "describe": self._describe, "gomo": self._gomo}[task]
+        parts, answer, meta = build(rng, k, sheet, empty)
+        from degusta_learn.prompting import Prompt
+
+        meta["task"] = task
+        return Example(episode=f"perception/{self.seed}/{i}", prompt=Prompt("perception", parts, f"perception/{i}"),
+                       answer=answer, meta=meta)
+
+    # ------------------------------------------------------------------ tasks
+    def _scene_parts(self, scene, name: str, labels: list) -> list:
+        """The "name:" label, the GMA image and the order line of a scene; its cell labels go to `labels`."""
+        from degusta_learn.prompting import ImagePart
+        from degusta_learn.render.lifting import order_text
+
+        image = self.renderer.gma(scene.table, scene.placements, self.grid)
+        labels.append(self.token_labels(scene.placements))
+        return [f"{name}:", ImagePart(name=name, image=image), order_text(scene, self.catalog, name)]
+
+    def token_labels(self, placements) -> list[list[tuple[int, str]]]:
+        """Per image token (row-major over a `label_side` x `label_side` split of the whole image), the
+        (id, direction) of every object whose footprint reaches into it: dense targets for the vision tower."""
+        import numpy as np
+
+        from degusta_learn.render.grid import rotate, rotation_to_direction
+        from degusta_learn.render.shapes import footprint_points
+        from degusta_learn.scene import object_size
+
+        n, size, margin = self.label_side, self.render_size, self.renderer.margin
+        cells: list[list[tuple[int, str]]] = [[] for _ in range(n * n)]
+        for p in placements:
+            obj = self.catalog[p.object]
+            width, length = object_size(obj)
+            pts = rotate(footprint_points(obj.type, obj.shape, width, length, obj.image is not None), p.rotation)
+            px = (margin + (pts + np.array([p.x, p.y])) * (size - 2 * margin)) / size  # image fraction
+            px = px[((px >= 0) & (px < 1)).all(1)]
+            for k in np.unique(np.floor(px[:, 1] * n).astype(int) * n + np.floor(px[:, 0] * n).astype(int)):
+                cells[int(k)].append((p.object, rotation_to_direction(p.rotation)))
+        return cells
+
+    def _first_cell(self, p) -> tuple[int, int, float]:
+        """Reading-order key: (row, column) of the first cell an object covers, then its x."""
+        col, row = self.grid.parse_cell(self.grid.encode(self.catalog[p.object], p.x, p.y, p.rotation)[0])
+        return row, col, p.x
+
+    def _truth(self, placements) -> tuple[str, list[dict]]:
+        from degusta_learn.prompting import answer_items, format_answer
+
+        items = answer_items(list(placements), self.catalog, "grid", self.grid)
+        truth = [{"type": it.type, "id": it.id, "cells": list(it.cells), "direction": it.direction} for it in items]
+        return format_answer(items, "grid"), truth
+
+    def _list(self, rng, k: int, sheet: bool, empty: bool):
+        from degusta_learn.prompting import ImagePart
+
+        parts: list = []
+        labels: list = []
+        if sheet:
+            parts += self._object_sheets()
+            labels.append(None)  # the composed sheets have no grid cells
+        scenes = [random_scene(rng, self.catalog, self.tables, trial=j) for j in range(k)]
+        for j, scene in enumerate(scenes, start=1):
+            parts += self._scene_parts(scene, f"final_state_{j}.jpg", labels)
+        if empty:
+            table = sorted(self.tables)[int(rng.integers(len(self.tables)))]
+            parts += ["initial_state_1.jpg:", ImagePart("initial_state_1.jpg", self.renderer.table(table, self.grid))]
+            labels.append(self.token_labels(()))
+        asked = int(rng.integers(k))
+        name = f"final_state_{asked + 1}.jpg"
+        reading = bool(rng.random() < self.mix.reading_order)
+        parts.append(list_question(name, self.types, reading))
+        placements = scenes[asked].placements
+        if reading:
+            placements = sorted(placements, key=lambda p: self._first_cell(p))
+        answer, truth = self._truth(placements)
+        return parts, answer, {"truth": truth, "scenes": k, "token_labels": labels}
+
+    def _object_sheets(self) -> list:
+        from degusta_learn.prompting import ImagePart, Prompt
+
+        parts: list = ["These are the objects I have, one image per object type. Each object is marked with "
+                       "its object_reference_id."]
+        for t in self.types:
+            parts += [f"objects_{t}.jpg:", ImagePart(f"objects_{t}.jpg", self.renderer.gomo(t))]
+        return adapt_prompt(Prompt("perception", parts), PromptOptions(compose=["objects"])).parts
+
+    def _describe(self, rng, k: int, sheet: bool, empty: bool):
+        scene = random_scene(rng, self.catalog, self.tables)
+        name = "final_state_1.jpg"
+        p = scene.placements[int(rng.integers(len(scene.placements)))]
+        obj = self.catalog[p.object]
+        answer, truth = self._truth([p])
+        labels: list = []
+        parts = self._scene_parts(scene, name, labels) + [describe_question(name, obj.type, obj.id)]
+        return parts, answer, {"truth": truth, "token_labels": labels}
+
+    def _gomo(self, rng, k: int, sheet: bool, empty: bool):
+        from degusta_learn.prompting import ImagePart
+        from degusta_learn.render.lifting import gomo_layout
+
+        type_ = self.types[int(rng.integers(len(self.types)))]
+        pool = self.catalog.of_type(type_)
+        n = int(rng.integers(min(4, len(pool)), len(pool) + 1))
+        objs = [pool[j] for j in rng.permutation(len(pool))[:n]]
+        name = f"objects_{type_}.jpg"
+        cols, _ = gomo_layout(n)
+        pick = int(rng.integers(n))
+        row, col = divmod(pick, cols)
+        parts = [f"{name}:", ImagePart(name, self.renderer.gomo_sheet(type_, objs)),
+                 gomo_question(name, type_, n, row + 1, col + 1)]
+        return parts, str(objs[pick].id), {"truth_id": objs[pick].id, "token_labels": [None]}

@@ -1,0 +1,197 @@
+"""`degusta train` with `kind: pretrain`: teach a tiny base VLM to *see* lifted images, from random weights.
+
+Usage (the shipped base: about 90 minutes on a 2-core CPU, resumable by running the same command again):
+    degusta train --config configs/pretrain_tiny_vlm_cpu.yaml
+    degusta train --config configs/pretrain_tiny_vlm_cpu.yaml --set trainer.max_steps=40 \
+        --set data.steps_per_epoch=20 --set trainer.run_name=pretrain_smoke --set export=runs/base_smoke   # smoke
+
+What it does: builds a FastVLM of `model:` sizes with random weights and the domain tokenizer (saved
+once in `<run>/init/`, so a resumed run continues the same model), then trains every weight on
+perception questions about random style-free scenes (`tasks.py`; never a participant's arrangement,
+never the DegustaBot question). An "epoch" is `data.steps_per_epoch` steps of fresh examples (the
+sampler offsets the example index by the epoch, so no example repeats); each epoch ends with a
+validation that generates answers to `data.val_examples` held-out questions (another seed) and logs
+val/object_f1, val/cells_exact, val/direction, val/mark_id and their mean val/perception, which picks
+best.ckpt. At the end the best weights are written to `export` as a plain Hugging Face model folder
+(config, safetensors, processor, tokenizer) with `degusta_base.json` and a model card (README.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.config import EvalConfig, GridConfig, OptimConfig
+from degusta_learn.finetune.pretrain.base import OUTPUT_STRIDE, BaseArchitecture
+from degusta_learn.finetune.pretrain.tasks import TaskMix
+from degusta_learn.methods import TrainerSpec
+from degusta_learn.trainer import TrainerConfig
+
+BASE_META = "degusta_base.json"
+
+
+@dataclass
+class PretrainData:
+    """The `data:` section: the perception examples and their batching."""
+
+    grid: GridConfig = field(default_factory=GridConfig)
+    """The labelled grid drawn over the scenes (the base learns this grid)."""
+    mix: TaskMix = field(default_factory=TaskMix)
+    """Which questions, how often."""
+    steps_per_epoch: int = 300
+    """Training steps between validations (an epoch of fresh examples; last.ckpt is written at its end)."""
+    val_examples: int = 48
+    """Held-out questions generated and scored at every validation."""
+    batch_size: int = 8
+    """Examples per step; a batch holds one task and one number of images (little padding)."""
+    max_length: int = 2048
+    """Token budget of one example; longer is an error, never truncated."""
+    num_workers: int = 0
+    """DataLoader worker processes rendering the scenes (0: in the main process)."""
+    dense_weight: float = 0.05
+    """Weight of the dense auxiliary loss on the image tokens (what covers each token, where it is); 0: off."""
+
+    def __post_init__(self):
+        for key in ("steps_per_epoch", "batch_size", "max_length"):
+            if getattr(self, key) < 1:
+                raise DegustaError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
+        if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0:
+            raise DegustaError("data.val_examples / data.num_workers / data.dense_weight: expected >= 0")
+
+
+@dataclass
+class PretrainConfig:
+    """`degusta train` with `kind: pretrain`: perception pretraining of a tiny base VLM from random weights."""
+
+    kind: str = "pretrain"
+    """Trainer name (TRAINERS)."""
+    dataset: str | None = None
+    """null: the embedded default catalog and tables; a dataset folder: its catalog.json and tables.json (its arrangements are never read)."""
+    seed: int = 0
+    """Seed of the weights and of the example streams (validation uses seed + 1,000,003)."""
+    model: BaseArchitecture = field(default_factory=BaseArchitecture)
+    """Sizes of the FastVLM built from random weights."""
+    data: PretrainData = field(default_factory=PretrainData)
+    """Examples and batching."""
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1.5e-3, weight_decay=0.01, warmup_steps=100))
+    """Optimizer and schedule."""
+    eval: EvalConfig = field(default_factory=lambda: EvalConfig(report_unconstrained=False, max_new_tokens=240))
+    """How validation generates (constrained to the answer grammar by default)."""
+    export: str = "checkpoints/tiny_vlm_base"
+    """Where the trained base is written as a plain Hugging Face model folder (with a model card)."""
+    trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(
+        run_name="pretrain_tiny_vlm_cpu", max_epochs=-1, max_steps=4000, monitor="val/perception",
+        monitor_mode="max"))
+    """Lightning settings and the run folder."""
+
+    def __post_init__(self):
+        need = max(self.data.grid.rows, self.data.grid.cols)
+        if self.model.tokens_per_side < need:  # no image token would cover a single grid cell
+            raise DegustaError(f"model.image_size: {self.model.image_size} px gives {self.model.tokens_per_side} x "
+                               f"{self.model.tokens_per_side} image tokens, fewer than the grid's {need} cells per "
+                               f"side; use at least {need * OUTPUT_STRIDE} px (or a coarser data.grid)")
+
+
+def catalog_and_tables(dataset: str | None):
+    """(catalog, tables, image root) from a dataset folder, or the embedded default's."""
+    from degusta_learn.scene import default_catalog, default_tables, load_dataset
+
+    if dataset is None:
+        return default_catalog(), {t.id: t for t in default_tables()}, None
+    ds = load_dataset(dataset)
+    return ds.catalog, ds.tables, ds.root
+
+
+class DenseCollate:
+    """The collator's batch plus the dense targets of its examples (`dense.DenseLabels`)."""
+
+    def __init__(self, collator, labels):
+        self.collator, self.labels = collator, labels
+
+    def __call__(self, examples) -> dict:
+        batch = self.collator(examples)
+        batch["dense_targets"], batch["dense_keep"] = self.labels(examples)
+        return batch
+
+
+class EpochSampler:
+    """Indices epoch * n .. epoch * n + n - 1: every epoch sees fresh examples (Lightning calls set_epoch)."""
+
+    def __init__(self, n: int):
+        self.n, self.epoch = n, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self):
+        return iter(range(self.epoch * self.n, (self.epoch + 1) * self.n))
+
+
+def initial_model(cfg: PretrainConfig, run_dir: Path) -> Path:
+    """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it)."""
+    from degusta_learn.fileio import atomic_write_json
+    from degusta_learn.finetune.model import offline
+    from degusta_learn.finetune.pretrain.base import build_base
+
+    init = run_dir / "init"
+    if (init / "degusta_init.json").is_file():
+        return init
+    offline()
+    model, processor = build_base(cfg.model, seed=cfg.seed)
+    init.mkdir(parents=True, exist_ok=True)
+    model.save_pretrained(str(init))
+    processor.save_pretrained(str(init))
+    atomic_write_json(init / "degusta_init.json", {"note": "random initial weights of a pretrain run"})
+    return init
+
+
+def run(cfg: PretrainConfig) -> Path:
+    """Pretrain per `cfg` (resuming `<run>/last.ckpt` if present); returns the exported model folder."""
+    import torch
+
+    from degusta_learn.finetune.collate import Collator
+    from degusta_learn.finetune.generate import chat_format
+    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.finetune.module import FinetuneData
+    from degusta_learn.finetune.pretrain.export import export_base
+    from degusta_learn.finetune.pretrain.dense import DenseLabels
+    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.trainer import BEST, fit
+
+    catalog, tables, root = catalog_and_tables(cfg.dataset)
+    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+    run_dir = cfg.trainer.path
+    run_dir.mkdir(parents=True, exist_ok=True)
+    model, processor = load_vlm(str(initial_model(cfg, run_dir)), device="cpu", dtype="float32", key="model")
+    model.train()
+    fmt = chat_format(model, processor)
+    collator = Collator(processor, fmt, cfg.data.max_length, model.config.image_token_id)
+    d = cfg.data
+    steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
+    side = cfg.model.tokens_per_side
+    make = lambda seed, n, block: PerceptionExamples(catalog, tables, grid, cfg.model.image_size, seed, n,  # noqa: E731
+                                                     d.mix, block, root, label_side=side)
+    train = make(cfg.seed, (steps + d.steps_per_epoch) * d.batch_size, d.batch_size)
+    val = make(cfg.seed + 1_000_003, d.val_examples, 1)
+    labels = DenseLabels(catalog, side)
+    module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
+    data = FinetuneData(train, val, DenseCollate(collator, labels) if d.dense_weight > 0 else collator,
+                        d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
+                        val_collator=collator)
+    run_dir = fit(module, data, cfg.trainer, full_config=cfg)
+    if module.trainer is not None and not module.trainer.is_global_zero:
+        return Path(cfg.export)
+    best = run_dir / BEST
+    if best.is_file():  # export the best validation, not merely the last weights
+        state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
+        module.load_state_dict(state)
+    return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=module.global_step)
+
+TRAINER = TrainerSpec(PretrainConfig, run, "pretrain a tiny base VLM from random weights on perception questions "
+                      "about random scenes (never the preference task); exports a Hugging Face model folder")

@@ -1,0 +1,121 @@
+"""Perception pretraining data: random scenes, questions, answers and dense labels (no model needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.pretrain.scenes import random_scene
+from degusta_learn.finetune.pretrain.score import score_answer, summarize
+from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
+from degusta_learn.prompting import ImagePart, parse_answer
+from degusta_learn.render.grid import Grid
+from degusta_learn.render.lifting import gomo_layout
+from degusta_learn.scene import default_catalog, default_tables
+from degusta_learn.synth.geometry import footprint_points, inside, max_overlap, sizes_of
+
+CATALOG = default_catalog()
+TABLES = {t.id: t for t in default_tables()}
+GRID = Grid(8, 8)
+
+
+def examples(seed=0, n=64, block=4, mix=None, size=128) -> PerceptionExamples:
+    return PerceptionExamples(CATALOG, TABLES, GRID, size, seed, n, mix or TaskMix(), block=block)
+
+
+def test_random_scenes_lie_on_the_surface_without_hiding_objects():
+    for i in range(60):
+        scene = random_scene(np.random.default_rng(i), CATALOG, TABLES)
+        table = TABLES[scene.table]
+        xy = np.array([[p.x, p.y] for p in scene.placements])
+        rot = np.array([p.rotation for p in scene.placements])
+        sizes = sizes_of([CATALOG[p.object].type for p in scene.placements])
+        assert 1 <= len(scene.placements) <= 14 and len({p.object for p in scene.placements}) == len(xy)
+        assert inside(table, footprint_points(xy, rot, sizes)).all()
+        assert max_overlap(xy, rot, sizes) <= 0.05 + 1e-9
+    assert random_scene(np.random.default_rng(3), CATALOG, TABLES) == random_scene(np.random.default_rng(3), CATALOG, TABLES)
+
+
+def test_examples_are_deterministic_and_come_in_blocks_of_one_shape():
+    a, b = examples(), examples()
+    for i in (0, 5, 17, 40):
+        ea, eb = a[i], b[i]
+        assert ea.answer == eb.answer and ea.meta["task"] == eb.meta["task"]
+        assert [p.encode() for p in ea.prompt.images] == [p.encode() for p in eb.prompt.images]
+    for block in range(0, 64, 4):
+        shapes = {a.shape_of(i) for i in range(block, block + 4)}
+        assert len(shapes) == 1  # one task and one number of images per block: little padding
+    assert examples(seed=1)[0].answer != a[0].answer or examples(seed=1)[0].prompt.text != a[0].prompt.text
+    with pytest.raises(IndexError):
+        a[64]
+
+
+def test_no_question_is_the_preference_task():
+    """The base must stay zero-shot on the DegustaBot question: no preferences, no setting a table."""
+    ds = examples(n=120, block=1)
+    seen = set()
+    for i in range(len(ds)):
+        ex = ds[i]
+        seen.add(ex.meta["task"])
+        text = ex.prompt.text.lower()
+        assert "preference" not in text and "set the table" not in text and "helping me" not in text
+    assert seen == {"list", "describe", "gomo"}
+
+
+def test_answers_are_what_the_named_image_shows():
+    ds = examples(n=80, block=1, mix=TaskMix(lists=1, describe=1, gomo=1, scenes=[1, 1, 1, 1]))
+    for i in range(len(ds)):
+        ex = ds[i]
+        task = ex.meta["task"]
+        images = ex.prompt.images
+        assert len(ex.meta["token_labels"]) == len(images)
+        if task == "gomo":
+            assert ex.answer == str(ex.meta["truth_id"]) and CATALOG[int(ex.answer)].type in images[0].name
+            continue
+        items = parse_answer(ex.answer, "grid", CATALOG, GRID)
+        assert [(it.type, it.id, it.cells, it.direction) for it in items] == [
+            (t["type"], t["id"], t["cells"], t["direction"]) for t in ex.meta["truth"]]
+        if task == "list":  # the question names one of the scenes, whose order line lists these types
+            name = next(n for n in (f"final_state_{k}.jpg" for k in range(1, 5)) if f"object in {n}" in ex.prompt.text)
+            order = next(p for p in ex.prompt.parts if isinstance(p, str) and p.startswith(f"Placement order in {name}"))
+            assert order.endswith(", ".join(it.type for it in items) + ".")
+            labelled = ex.meta["token_labels"][[p.name for p in images].index(name)]
+            covered = {oid for objects in labelled for oid, _ in objects}
+            assert covered == {it.id for it in items}  # every object of the scene has dense labels
+
+
+def test_gomo_sheet_marks_the_asked_position():
+    ds = examples(n=40, block=1, mix=TaskMix(lists=0, describe=0, gomo=1))
+    ex = ds[0]
+    q = ex.prompt.parts[-1]
+    n = int(q.split("(")[1].split(" objects")[0])
+    row = int(q.split("row ")[1].split(",")[0])
+    col = int(q.split("column ")[1].split(" ")[0])
+    cols, rows = gomo_layout(n)
+    assert 1 <= row <= rows and 1 <= col <= cols and isinstance(ex.prompt.parts[1], ImagePart)
+
+
+def test_perception_scores():
+    ds = examples(n=30, block=1, mix=TaskMix(lists=1, describe=1, gomo=1))
+    exs = [ds[i] for i in range(len(ds))]
+    perfect = summarize([score_answer(ex, ex.answer, CATALOG, GRID) for ex in exs])
+    assert all(perfect[k] == 1.0 for k in ("object_f1", "cells_exact", "direction", "mark_id", "parse_rate"))
+    bad = summarize([score_answer(ex, "no idea", CATALOG, GRID) for ex in exs])
+    assert bad["object_f1"] == 0.0 and bad["mark_id"] == 0.0 and bad["parse_rate"] == 0.0
+    assert np.isnan(bad["cells_exact"])  # nothing named: no cell to judge
+    # one wrong cell of one object: named, not exact
+    ex = next(e for e in exs if e.meta["task"] == "describe")
+    item = ex.meta["truth"][0]
+    wrong = ex.answer.replace(f"'{item['cells'][0]}'", "'A1'" if item["cells"][0] != "A1" else "'B1'")
+    row = score_answer(ex, wrong, CATALOG, GRID)
+    assert row["named"] == 1 and row["cells_ok"] == 0 and 0 <= row["cell_iou"] < 1
+
+
+def test_task_mix_is_checked():
+    with pytest.raises(DegustaError, match="data.mix"):
+        TaskMix(lists=0, describe=0, gomo=0)
+    with pytest.raises(DegustaError, match="data.mix.scenes"):
+        TaskMix(scenes=[1, 1])
+    with pytest.raises(DegustaError, match="objects_sheet"):
+        TaskMix(objects_sheet=2)

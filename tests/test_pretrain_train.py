@@ -1,0 +1,95 @@
+"""`degusta train` with `kind: pretrain` on a tiny FastVLM: train, validate, export, resume, load, refuse bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from degusta_learn.config import load_config
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
+from degusta_learn.finetune.pretrain.dense import DenseHead, DenseLabels, projector_of
+from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
+from degusta_learn.finetune.pretrain.train import PretrainConfig
+from degusta_learn.methods import run_train
+from degusta_learn.render.grid import Grid
+from degusta_learn.scene import default_catalog, default_tables
+
+CONFIG = Path(__file__).parent.parent / "configs" / "pretrain_tiny_vlm_cpu.yaml"
+TINY = ["model.vision_channels=[8,8,16,16]", "model.vision_stem=8", "model.text_hidden=32", "model.text_layers=1",
+        "model.text_heads=2", "model.text_kv_heads=1", "model.text_intermediate=64", "model.vocab_size=600"]
+
+
+def _overrides(tmp_path: Path, steps: int) -> list[str]:
+    return TINY + [f"trainer.run_dir={tmp_path / 'runs'}", "trainer.run_name=p", f"trainer.max_steps={steps}",
+                   "data.steps_per_epoch=2", "data.val_examples=3", "data.batch_size=2", "trainer.progress_bar=false",
+                   "eval.max_new_tokens=120", "trainer.log_every_n_steps=1", f"export={tmp_path / 'base'}"]
+
+
+def test_shipped_pretrain_config_loads_and_is_checked():
+    cfg = load_config(PretrainConfig, CONFIG)
+    assert cfg.kind == "pretrain" and cfg.model.tokens_per_image == 64 and cfg.trainer.monitor == "val/perception"
+    with pytest.raises(DegustaError, match="model.image_size"):
+        load_config(PretrainConfig, CONFIG, ["model.image_size=250"])
+    with pytest.raises(DegustaError, match="model.vision_channels"):
+        load_config(PretrainConfig, CONFIG, ["model.vision_channels=[8,8]"])
+    with pytest.raises(DegustaError, match="data.mix"):
+        load_config(PretrainConfig, CONFIG, ["data.mix.lists=0", "data.mix.describe=0", "data.mix.gomo=0"])
+
+
+def test_images_too_coarse_for_the_grid_are_refused(tmp_path):
+    with pytest.raises(DegustaError, match="model.image_size: 128 px gives 4 x 4 image tokens"):
+        run_train(CONFIG, _overrides(tmp_path, 1) + ["model.image_size=128"])
+    assert not (tmp_path / "runs").exists()  # refused before anything is written
+
+
+def test_dense_head_trains_the_tokens_the_decoder_sees():
+    model, _ = build_base(BaseArchitecture(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32,
+                                           text_layers=1, text_heads=2, text_kv_heads=1, text_intermediate=64,
+                                           vocab_size=600))
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    ds = PerceptionExamples(catalog, tables, Grid(8, 8), 256, 0, 8, TaskMix(), block=1)
+    labels = DenseLabels(catalog, 8)
+    targets, keep = labels([ds[i] for i in range(8)])
+    assert keep.numel() == sum(len(ds[i].prompt.images) for i in range(8)) and targets.shape[1:] == (64, labels.n_labels)
+    assert targets.sum() > 0
+    head = DenseHead(32, labels.n_labels, 8)
+    assert projector_of(model) is model.model.multi_modal_projector
+    tokens = torch.randn(keep.numel(), 64, 32, requires_grad=True)
+    loss = head.loss(tokens, targets, keep)
+    loss.backward()
+    assert torch.isfinite(loss) and tokens.grad.abs().sum() > 0
+    assert head.loss(None, targets, keep).item() == 0.0  # nothing captured: no signal, no crash
+
+
+@pytest.mark.slow
+def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
+    from transformers import AutoModelForImageTextToText, AutoProcessor
+
+    from degusta_learn.finetune.model import load_vlm
+
+    out = run_train(CONFIG, _overrides(tmp_path, 2))
+    assert out == tmp_path / "base"
+    for name in ("config.json", "model.safetensors", "tokenizer.json", "processor_config.json", "README.md",
+                 "degusta_base.json", "pretrain_config.yaml"):
+        assert (out / name).is_file(), name
+    meta = json.loads((out / "degusta_base.json").read_text())
+    assert meta["training"]["steps"] == 2 and meta["tokens_per_image"] == 64 and meta["validation_curve"]
+    assert "val/perception" in meta["validation_curve"][-1]
+    card = (out / "README.md").read_text()
+    assert "never shown anyone's table setting" in card and "AutoModelForImageTextToText" in card
+    # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head
+    model = AutoModelForImageTextToText.from_pretrained(out)
+    assert type(model).__name__ == "FastVlmForConditionalGeneration"
+    assert type(AutoProcessor.from_pretrained(out)).__name__ == "LlavaProcessor"
+    model2, _ = load_vlm(str(out), device="cpu", dtype="float32")
+    assert not any("dense" in k for k in model2.state_dict())
+    # resume: the same command with more steps continues the run (same initial weights and tokenizer)
+    ckpt = tmp_path / "runs" / "p" / "last.ckpt"
+    assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 2
+    run_train(CONFIG, _overrides(tmp_path, 4))
+    assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 4
+    assert json.loads((out / "degusta_base.json").read_text())["training"]["steps"] == 4
