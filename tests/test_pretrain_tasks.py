@@ -69,7 +69,7 @@ def test_answers_are_what_the_named_image_shows():
         ex = ds[i]
         task = ex.meta["task"]
         images = ex.prompt.images
-        assert len(ex.meta["token_labels"]) == len(images)
+        assert len(ex.meta["cell_labels"]) == len(images)
         if task == "gomo":
             assert ex.answer == str(ex.meta["truth_id"]) and CATALOG[int(ex.answer)].type in images[0].name
             continue
@@ -79,8 +79,14 @@ def test_answers_are_what_the_named_image_shows():
         if task == "list":  # the question names one of the scenes, whose order line lists these types
             name = next(n for n in (f"final_state_{k}.jpg" for k in range(1, 5)) if f"object in {n}" in ex.prompt.text)
             order = next(p for p in ex.prompt.parts if isinstance(p, str) and p.startswith(f"Placement order in {name}"))
-            assert order.endswith(", ".join(it.type for it in items) + ".")
-            labelled = ex.meta["token_labels"][[p.name for p in images].index(name)]
+            if ex.meta["order"] == "placement":
+                assert order.endswith(", ".join(it.type for it in items) + ".")
+            else:  # row by row from the top left, by each object's first grid cell
+                assert "row by row" in ex.prompt.parts[-1]
+                firsts = [GRID.parse_cell(it.cells[0])[::-1] for it in items]
+                assert firsts == sorted(firsts)
+                assert sorted(order.split(": ", 1)[1].rstrip(".").split(", ")) == sorted(it.type for it in items)
+            labelled = ex.meta["cell_labels"][[p.name for p in images].index(name)]
             covered = {oid for objects in labelled for oid, _ in objects}
             assert covered == {it.id for it in items}  # every object of the scene has dense labels
 

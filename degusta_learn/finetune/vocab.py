@@ -22,7 +22,10 @@ from __future__ import annotations
 
 import random
 
-_PRETOKENS = r" ?[A-Z][0-9]{1,2}(?![0-9A-Za-z_])| ?[0-9]{1,3}| ?[A-Za-z_]+| ?[^\sA-Za-z0-9]+|\s+"
+# A space before an object type, a number or a grid cell is a token of its own, so "cup", "17" and "C7" are
+# the same tokens in a question ("the cup with object_reference_id 17") as in an answer ("'cup', 'id': 17").
+_CONTENT = r"cup|fork|knife|plate|spoon|[0-9]|[A-Z][0-9]"
+_PRETOKENS = (rf"\s(?={_CONTENT})|[A-Z][0-9]{{1,2}}(?![0-9A-Za-z_])|[0-9]{{1,3}}| ?[A-Za-z_]+| ?[^\sA-Za-z0-9]+|\s+")
 
 
 def answer_literals() -> list[str]:

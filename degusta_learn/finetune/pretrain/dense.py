@@ -3,7 +3,8 @@
 The answer loss reaches the vision tower only through the decoder's attention, which at first looks
 nowhere in particular, so a vision tower trained from random weights gets a weak signal. During
 pretraining a linear head on the projector's output (the tokens the decoder sees) is trained on each
-image token's own targets (`tasks.PerceptionExamples.token_labels`):
+image token's own targets (`tasks.PerceptionExamples.cell_labels`: with 8 x 8 image tokens over an 8 x 8
+grid, token k stands for grid cell k):
 
 - which object types, which object ids and which directions cover the token's region (multi-label);
 - the token's row and column (so every image token carries where it is: a convolutional tower has no
@@ -43,7 +44,7 @@ class DenseLabels:
         """Multi-hot targets (n_labelled, side^2, n_labels) and which of all images are labelled (n_images,)."""
         rows, keep = [], []
         for ex in examples:
-            for labels in ex.meta.get("token_labels", []):
+            for labels in ex.meta.get("cell_labels", []):
                 keep.append(labels is not None)
                 if labels is None:
                     continue

@@ -97,12 +97,11 @@ class PerceptionExamples:
     """A map-style dataset: global index -> perception `Example` (see the module docstring)."""
 
     def __init__(self, catalog, tables: dict, grid, render_size: int, seed: int, length: int,
-                 mix: TaskMix | None = None, block: int = 8, root=None, label_side: int = 8):
+                 mix: TaskMix | None = None, block: int = 8, root=None):
         self.catalog, self.tables, self.grid = catalog, dict(tables), grid
         self.render_size, self.seed, self.length = render_size, seed, length
         self.mix, self.block, self.root = mix or TaskMix(), max(1, block), root
         self.types = list(catalog.types)
-        self.label_side = label_side  # image tokens per side of the vision tower (token_labels)
         self._renderer = None
 
     def __len__(self) -> int:
@@ -150,28 +149,19 @@ class PerceptionExamples:
         from degusta_learn.render.lifting import order_text
 
         image = self.renderer.gma(scene.table, scene.placements, self.grid)
-        labels.append(self.token_labels(scene.placements))
+        labels.append(self.cell_labels(scene.placements))
         return [f"{name}:", ImagePart(name=name, image=image), order_text(scene, self.catalog, name)]
 
-    def token_labels(self, placements) -> list[list[tuple[int, str]]]:
-        """Per image token (row-major over a `label_side` x `label_side` split of the whole image), the
-        (id, direction) of every object whose footprint reaches into it: dense targets for the vision tower."""
-        import numpy as np
+    def cell_labels(self, placements) -> list[list[tuple[int, str]]]:
+        """Per grid cell (row-major), the (id, direction) of every object whose footprint covers it: exactly
+        the cells the answer format lists, so image token k of an 8 x 8 token grid stands for cell k."""
+        from degusta_learn.render.grid import rotation_to_direction
 
-        from degusta_learn.render.grid import rotate, rotation_to_direction
-        from degusta_learn.render.shapes import footprint_points
-        from degusta_learn.scene import object_size
-
-        n, size, margin = self.label_side, self.render_size, self.renderer.margin
-        cells: list[list[tuple[int, str]]] = [[] for _ in range(n * n)]
+        cells: list[list[tuple[int, str]]] = [[] for _ in range(self.grid.rows * self.grid.cols)]
         for p in placements:
-            obj = self.catalog[p.object]
-            width, length = object_size(obj)
-            pts = rotate(footprint_points(obj.type, obj.shape, width, length, obj.image is not None), p.rotation)
-            px = (margin + (pts + np.array([p.x, p.y])) * (size - 2 * margin)) / size  # image fraction
-            px = px[((px >= 0) & (px < 1)).all(1)]
-            for k in np.unique(np.floor(px[:, 1] * n).astype(int) * n + np.floor(px[:, 0] * n).astype(int)):
-                cells[int(k)].append((p.object, rotation_to_direction(p.rotation)))
+            for cell in self.grid.encode(self.catalog[p.object], p.x, p.y, p.rotation):
+                col, row = self.grid.parse_cell(cell)
+                cells[row * self.grid.cols + col].append((p.object, rotation_to_direction(p.rotation)))
         return cells
 
     def _first_cell(self, p) -> tuple[int, int, float]:
@@ -200,7 +190,7 @@ class PerceptionExamples:
         if empty:
             table = sorted(self.tables)[int(rng.integers(len(self.tables)))]
             parts += ["initial_state_1.jpg:", ImagePart("initial_state_1.jpg", self.renderer.table(table, self.grid))]
-            labels.append(self.token_labels(()))
+            labels.append(self.cell_labels(()))
         asked = int(rng.integers(k))
         name = f"final_state_{asked + 1}.jpg"
         reading = bool(rng.random() < self.mix.reading_order)
@@ -209,7 +199,8 @@ class PerceptionExamples:
         if reading:
             placements = sorted(placements, key=lambda p: self._first_cell(p))
         answer, truth = self._truth(placements)
-        return parts, answer, {"truth": truth, "scenes": k, "token_labels": labels}
+        return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels,
+                               "order": "reading" if reading else "placement"}
 
     def _object_sheets(self) -> list:
         from degusta_learn.prompting import ImagePart, Prompt
@@ -228,7 +219,7 @@ class PerceptionExamples:
         answer, truth = self._truth([p])
         labels: list = []
         parts = self._scene_parts(scene, name, labels) + [describe_question(name, obj.type, obj.id)]
-        return parts, answer, {"truth": truth, "token_labels": labels}
+        return parts, answer, {"truth": truth, "cell_labels": labels}
 
     def _gomo(self, rng, k: int, sheet: bool, empty: bool):
         from degusta_learn.prompting import ImagePart
@@ -244,4 +235,4 @@ class PerceptionExamples:
         row, col = divmod(pick, cols)
         parts = [f"{name}:", ImagePart(name, self.renderer.gomo_sheet(type_, objs)),
                  gomo_question(name, type_, n, row + 1, col + 1)]
-        return parts, str(objs[pick].id), {"truth_id": objs[pick].id, "token_labels": [None]}
+        return parts, str(objs[pick].id), {"truth_id": objs[pick].id, "cell_labels": [None]}

@@ -1,0 +1,179 @@
+"""Zero-shot vs LoRA-fine-tuned vs fully fine-tuned tiny base VLM on the preference task, beside the baselines.
+
+On the SYNTHETIC naturalistic default's test split (40 held-out participants, context 4, 200 episodes,
+the same episodes for every method): the tiny base zero-shot (`configs/predict_hf_base_zeroshot.yaml`),
+the base LoRA-fine-tuned by `configs/finetune_tiny_base_cpu.yaml` (timed), the base fully fine-tuned with the
+same steps (`lora.mode=full`), and the heuristic baselines and the oracle. Prints one markdown table
+(object accuracy, Kabsch RMSD, set RMSD, count error, objects per answer, few-matched share), the paired
+bootstrap tests the issue asks for (fine-tuned vs population_mean on Kabsch RMSD, fine-tuned minus
+zero-shot), the ratio to copy_nearest, and plots the LoRA run's learning curve (validation RMSD, set
+RMSD and parse rate against steps).
+
+Usage:
+    python benchmarks/bench_vlm.py                         # ~35 CPU minutes: 2 fine-tunings + 3 x 200 answers
+    python benchmarks/bench_vlm.py --episodes 40 --modes lora --out runs/bench_vlm_quick
+    python benchmarks/bench_vlm.py --reuse                 # re-score: keep finished runs and predictions
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+os.environ["HF_HUB_OFFLINE"] = "1"
+
+BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
+
+
+def plot_curve(run_dir: Path, out: Path) -> Path | None:
+    """Validation RMSD, set RMSD and parse rate of a fine-tuning run against steps (PNG)."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for path in sorted(run_dir.glob("csv/version_*/metrics.csv")):
+        with path.open(newline="") as f:
+            rows += [r for r in csv.DictReader(f) if r.get("val/rmsd")]
+    if not rows:
+        return None
+    steps = [int(float(r["step"])) + 1 for r in rows]
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=120)
+    for key, label in (("val/rmsd", "Kabsch RMSD (paper)"), ("val/set_rmsd", "set RMSD"),
+                       ("val/object_accuracy", "object accuracy")):
+        if rows[0].get(key) not in (None, ""):
+            ax.plot(steps, [float(r[key]) for r in rows], marker="o", ms=3, label=label)
+    ax.set(xlabel="LoRA step", ylabel="validation score", title="Tiny base VLM, LoRA on MOGMA (val participants, k=4)")
+    ax2 = ax.twinx()
+    ax2.plot(steps, [float(r["val/parse_rate"]) for r in rows], color="grey", ls="--", label="parse rate")
+    ax2.set(ylabel="parse rate", ylim=(0, 1.05))
+    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    labels = ax.get_legend_handles_labels()[1] + ax2.get_legend_handles_labels()[1]
+    ax.legend(lines, labels, fontsize=8, loc="center right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dataset", default="data/naturalistic")
+    ap.add_argument("--base", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--out", default="runs/bench_vlm")
+    ap.add_argument("--episodes", type=int, default=None, help="only the first N test episodes (default: all 200)")
+    ap.add_argument("--modes", nargs="+", default=["lora", "full"], choices=["lora", "full"])
+    ap.add_argument("--full-lr", type=float, default=5e-4, help="learning rate of full fine-tuning")
+    ap.add_argument("--reuse", action="store_true", help="keep finished fine-tuning runs and prediction files")
+    ap.add_argument("--plot", default="docs/images/vlm_learning_curve.png")
+    args = ap.parse_args()
+
+    import numpy as np
+
+    from degusta_learn.methods import get_method, run_predict, run_train
+    from degusta_learn.metrics import SET_PENALTY, bootstrap_ci, paired_bootstrap, score_many
+    from degusta_learn.scene import load_dataset, make_episodes, read_predictions, write_episodes
+    from degusta_learn.synth import generate_dataset
+
+    if not (Path(args.dataset) / "arrangements.jsonl").is_file():
+        generate_dataset("naturalistic", args.dataset, seed=0)
+    ds = load_dataset(args.dataset)
+    out = Path(args.out)
+    episodes = make_episodes(ds, 4, "test", 0)[: args.episodes]
+    ep_file = out / "episodes.jsonl"
+    write_episodes(ep_file, episodes)
+    common = [f"dataset={args.dataset}", f"episodes={ep_file}"]
+    preds, seconds = {}, {}
+
+    def hf(name: str, config: str, extra: list[str]) -> None:
+        path = out / "predictions" / f"{name}.jsonl"
+        if not (args.reuse and path.is_file()):
+            t0 = time.time()
+            run_predict(config, common + [f"out={path}", f"backend.model={args.base}"] + extra)
+            seconds[f"predict {name}"] = time.time() - t0
+        preds[name] = read_predictions(path, ds.catalog)
+
+    hf("tiny_vlm_zeroshot", "configs/predict_hf_base_zeroshot.yaml", [])
+    for mode in args.modes:
+        name = f"tiny_vlm_{mode}"
+        run_dir = out / "checkpoints" / name
+        extra = [f"lora.mode={mode}", f"optim.lr={args.full_lr}"] if mode == "full" else []
+        if not (args.reuse and (run_dir / ("adapter" if mode == "lora" else "model")).is_dir()):
+            t0 = time.time()
+            run_train("configs/finetune_tiny_base_cpu.yaml", [f"dataset={args.dataset}", f"model.name={args.base}",
+                                                          f"trainer.run_dir={out / 'checkpoints'}",
+                                                          f"trainer.run_name={name}", "trainer.progress_bar=false"]
+                      + extra)
+            seconds[f"fine-tune {mode}"] = time.time() - t0
+        if mode == "lora":
+            hf(name, "configs/predict_hf_base_finetuned.yaml", [f"backend.adapter={run_dir / 'adapter'}"])
+        else:
+            hf(name, "configs/predict_hf_base_zeroshot.yaml", [f"backend.model={run_dir / 'model'}"])
+            preds[name] = read_predictions(out / "predictions" / f"{name}.jsonl", ds.catalog)
+    for name in BASELINES:
+        spec = get_method(name)
+        cfg = spec.config_cls(method=name, dataset=args.dataset, out="", split="test")
+        preds[name] = spec.run(cfg, ds, episodes)
+
+    order = [e.id for e in episodes]
+    gts = [ds.arrangement(e.participant, e.target) for e in episodes]
+    scores = {}
+    for name, ps in preds.items():
+        by = {p.episode: p for p in ps}
+        scores[name] = score_many(ds.catalog, gts, [by[i] for i in order])
+    col = lambda name, key: np.array([getattr(s, key) for s in scores[name]], dtype=float)  # noqa: E731
+
+    print(f"\n# {ds.label}: test split, context 4, {len(episodes)} episodes; set RMSD c = {SET_PENALTY}\n")
+    print("| method | object accuracy | Kabsch RMSD (paper) | set RMSD | count error | objects / answer | "
+          "<=2 matched | failed |")
+    print("|---|---|---|---|---:|---:|---:|---:|")
+    summary = {}
+    for name in preds:
+        acc, rmsd, srmsd = (bootstrap_ci(col(name, k)) for k in ("object_accuracy", "rmsd", "set_rmsd"))
+        n_pred = col(name, "n_pred")
+        few = float(np.mean(col(name, "n_matched") <= 2))
+        failed = float(np.mean([p.failed for p in preds[name]]))
+        summary[name] = {"object_accuracy": acc, "rmsd": rmsd, "set_rmsd": srmsd,
+                         "count_error": float(np.mean(col(name, "count_error"))), "objects": float(n_pred.mean()),
+                         "few_matched": few, "failed": failed}
+        f3 = lambda t: f"{t[0]:.3f} [{t[1]:.3f}, {t[2]:.3f}]"  # noqa: E731
+        print(f"| {name} | {f3(acc)} | {f3(rmsd)} | {f3(srmsd)} | {summary[name]['count_error']:.2f} | "
+              f"{n_pred.mean():.1f} | {few:.2f} | {failed:.2f} |")
+
+    print("\nPaired bootstrap over the same episodes (difference a - b, 95% interval, two-sided p):\n")
+    print("| a | b | metric | a - b | 95% interval | p |")
+    print("|---|---|---|---:|---|---:|")
+    tests = {}
+    pairs = [(f"tiny_vlm_{m}", "population_mean") for m in args.modes]
+    pairs += [(f"tiny_vlm_{m}", "tiny_vlm_zeroshot") for m in args.modes]
+    pairs += [(f"tiny_vlm_{m}", "copy_nearest") for m in args.modes]
+    if {"lora", "full"} <= set(args.modes):
+        pairs.append(("tiny_vlm_lora", "tiny_vlm_full"))
+    for a, b in pairs:
+        for key in ("rmsd", "set_rmsd", "object_accuracy"):
+            t = paired_bootstrap(col(a, key), col(b, key), n_resamples=10000)
+            tests[f"{a} - {b} {key}"] = t
+            print(f"| {a} | {b} | {key} | {t['diff']:+.4f} | [{t['lo']:+.4f}, {t['hi']:+.4f}] | {t['p_value']:.4f} |")
+    for m in args.modes:
+        ratio = summary[f"tiny_vlm_{m}"]["rmsd"][0] / summary["copy_nearest"]["rmsd"][0]
+        print(f"\ntiny_vlm_{m}: Kabsch RMSD / copy_nearest = {ratio:.2f} (goal <= 1.15)")
+    print("\nseconds:", json.dumps({k: round(v) for k, v in seconds.items()}))
+    plot = plot_curve(out / "checkpoints" / "tiny_vlm_lora", Path(args.plot)) if "lora" in args.modes else None
+    if plot:
+        print(f"learning curve: {plot}")
+    (out / "results.json").write_text(json.dumps({"summary": summary, "tests": tests, "seconds": seconds},
+                                                 indent=1, default=lambda x: None if isinstance(x, float) and
+                                                 math.isnan(x) else x))
+
+
+if __name__ == "__main__":
+    main()
