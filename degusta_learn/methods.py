@@ -134,7 +134,10 @@ def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry
 
     With `dry_run`, a method whose config has a `dry_run` key (the paid API methods) prints its request
     count and cost estimate; any other method makes no paid calls, so it only says what it would do.
-    A method returns None for a dry run: nothing is written, None returned.
+    A method returns None for a dry run: nothing is written, None returned. After writing, one line
+    summarises failures: failed episodes and, where answers were parsed, failed samples and dropped
+    items with their rates. A method that could not produce every prediction (e.g. a zero-shot run
+    whose server kept failing) raises DegustaError instead and nothing is written.
     """
     overrides = list(overrides or [])
     if dry_run:
@@ -153,8 +156,11 @@ def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry
     predictions = spec.run(cfg, ds, episodes)
     if predictions is None:
         return None
+    from degusta_learn.prompting.aggregate import failure_summary
+
     out = Path(cfg.out)
     write_predictions(out, predictions)
+    log(f"{cfg.method}: {failure_summary(predictions)}")
     return out
 
 

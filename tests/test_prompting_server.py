@@ -235,7 +235,7 @@ def test_the_api_key_is_never_written(tmp_path, server, dataset_dir, monkeypatch
     monkeypatch.setenv("MY_VLM_KEY", FAKE_KEY)
     server.error(500, f"internal error for key {FAKE_KEY}")
     path = write_config(tmp_path, server, dataset_dir, max_retries=0, backend={"api_key_env": "MY_VLM_KEY"})
-    assert cli_main(["predict", "--config", str(path)]) == 0
+    assert cli_main(["predict", "--config", str(path)]) == 2  # one episode unanswered: incomplete run
     assert server.requests[0]["auth"] == f"Bearer {FAKE_KEY}"
     server.error(401, f"Incorrect API key provided: {FAKE_KEY}")
     assert cli_main(["predict", "--config", str(path), "--set", "cache=off"]) == 2

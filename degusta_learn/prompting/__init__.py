@@ -6,9 +6,9 @@ sampled answers into one placement list, backends/ talks to the VLMs, runner.py 
 """
 
 from degusta_learn.prompting.answers import (
-    AnswerItem, AnswerParseError, answer_items, answer_kind, format_answer, parse_answer,
+    Answer, AnswerItem, AnswerParseError, answer_items, answer_kind, format_answer, parse_answer, read_answer,
 )
 from degusta_learn.prompting.prompt import ImagePart, Prompt, build_prompt
 
-__all__ = ["AnswerItem", "AnswerParseError", "ImagePart", "Prompt", "answer_items", "answer_kind",
-           "build_prompt", "format_answer", "parse_answer"]
+__all__ = ["Answer", "AnswerItem", "AnswerParseError", "ImagePart", "Prompt", "answer_items", "answer_kind",
+           "build_prompt", "format_answer", "parse_answer", "read_answer"]

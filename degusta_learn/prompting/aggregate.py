@@ -93,3 +93,32 @@ def aggregate(responses: list[list[AnswerItem] | None], kind: str, grid=None) ->
     if dropped:
         diag["dropped_steps"] = dropped
     return placements, diag
+
+
+def failure_summary(predictions) -> str:
+    """One line for the end of `degusta predict`: failed episodes, and where answers were parsed (zero-shot,
+    fine-tuned models) failed samples and dropped items, each with its rate.
+
+    Example: "9 episodes, 1 failed (11.1%); samples: 3 of 45 failed (6.7%); items: 2 of 120 dropped (1.7%)".
+    """
+    n = len(predictions)
+    failed = sum(bool(p.failed) for p in predictions)
+    line = f"{n} episodes, {failed} failed ({_pct(failed, n)})"
+    diags = [p.diagnostics for p in predictions if isinstance(p.diagnostics, dict)]
+    if any("n_responses" in d for d in diags):
+        samples = sum(_count(d.get("n_responses")) for d in diags)
+        bad = samples - sum(_count(d.get("n_parsed")) for d in diags)
+        line += f"; samples: {bad} of {samples} failed ({_pct(bad, samples)})"
+    if any("n_items" in d for d in diags):
+        items = sum(_count(d.get("n_items")) for d in diags)
+        dropped = sum(_count(d.get("n_item_errors")) for d in diags)
+        line += f"; items: {dropped} of {items} dropped ({_pct(dropped, items)})"
+    return line
+
+
+def _count(v) -> int:
+    return v if isinstance(v, int) and not isinstance(v, bool) and v >= 0 else 0
+
+
+def _pct(k: int, n: int) -> str:
+    return f"{100.0 * k / n:.1f}%" if n else "n/a"

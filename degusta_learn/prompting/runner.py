@@ -8,11 +8,19 @@ Usage:
 
 For each episode the runner builds the method's prompt (main thread), looks every sample up in the
 SQLite response cache, asks the backend for the missing ones on a bounded thread pool (retrying rate
-limits, server errors and timeouts with exponential backoff + jitter, honouring Retry-After), caches
-each answer the moment it arrives, parses and aggregates the n answers, and finally writes
-predictions.jsonl (through `methods.run_predict`) and `ledger.json` (tokens and dollars) beside it.
-A `budget_usd` cap or a fatal API error (bad key) stops the run cleanly: finished answers stay cached,
-the ledger is written, no predictions file is written, and re-running resumes where it stopped.
+limits, 408/409/5xx, timeouts, dropped connections and 200s whose body is not a completion, with bounded
+exponential backoff + jitter, honouring Retry-After), commits each response's answers to the cache the
+moment it is received (before parsing anything), parses and aggregates the n answers (a bad item is
+dropped and counted in `diagnostics.item_errors`; an answer with no valid item is a failed sample; model
+text never raises), and finally writes predictions.jsonl (through `methods.run_predict`) and
+`ledger.json` (tokens and dollars) beside it.
+
+A run that could not get every answer writes NO predictions file and exits with a one-line
+`DegustaError`: a `budget_usd` cap, a fatal API error (bad key), a server that kept failing (retries
+exhausted: 5xx, unreachable, malformed bodies) for some episodes, or for several episodes in a row (then
+it stops early). Finished answers stay cached, the ledger is written, and re-running the same command
+asks only for the answers still missing. A request the server refuses for good (e.g. 400) is not a
+server fault: its samples are counted failures of that episode, as unparseable answers are.
 """
 
 from __future__ import annotations
@@ -30,8 +38,10 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.prompting.aggregate import aggregate
-from degusta_learn.prompting.answers import AnswerParseError, answer_kind, parse_answer
-from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, make_backend, redact
+from degusta_learn.prompting.answers import AnswerParseError, answer_kind, read_answer
+from degusta_learn.prompting.backends.base import (
+    BackendConfig, BackendError, Completion, make_backend, redact, redact_json,
+)
 from degusta_learn.prompting.backends.openai import is_local
 from degusta_learn.prompting.cache import ResponseCache, sample_keys
 from degusta_learn.prompting.costs import BudgetExceeded, Ledger, cost, price
@@ -92,6 +102,7 @@ class ZeroShotConfig(PredictConfig):
         checks = [("n", self.n >= 1, ">= 1"), ("concurrency", self.concurrency >= 1, ">= 1"),
                   ("temperature", self.temperature >= 0, ">= 0"), ("image_size", self.image_size >= 64, ">= 64"),
                   ("max_retries", self.max_retries >= 0, ">= 0"), ("backoff", self.backoff >= 0, ">= 0"),
+                  ("backoff_max", self.backoff_max >= 0, ">= 0"),
                   ("budget_usd", self.budget_usd is None or self.budget_usd >= 0, ">= 0"),
                   ("image_format", self.image_format in IMAGE_FORMATS, f"one of {list(IMAGE_FORMATS)}")]
         for key, ok, expected in checks:
@@ -104,6 +115,24 @@ class ZeroShotConfig(PredictConfig):
 
 class _Stopped(Exception):
     """An episode left unfinished because the run is stopping."""
+
+
+class _Unanswered(Exception):
+    """An episode some of whose answers the server did not give (retries exhausted); asked again on re-run."""
+
+
+def _sanitize(got) -> list[Completion]:
+    """A backend's return value as a list of Completions with text and sane token counts (a bad reply
+    from a server or a buggy backend becomes text that fails to parse, never an exception later)."""
+    from degusta_learn.prompting.cache import _int, _text
+
+    if not isinstance(got, (list, tuple)):
+        raise BackendError(f"the backend returned {type(got).__name__}, not a list of answers")
+    out = []
+    for c in got:
+        out.append(Completion(text=_text(getattr(c, "text", None)), input_tokens=_int(getattr(c, "input_tokens", None)),
+                              output_tokens=_int(getattr(c, "output_tokens", None))))
+    return out
 
 
 class ZeroShotRun:
@@ -133,8 +162,17 @@ class ZeroShotRun:
 
     # ------------------------------------------------------------------------- requests
 
-    def request(self, prompt: Prompt, k: int, seed: int | None) -> list[Completion]:
-        """Ask for k samples, retrying transient errors; raises BudgetExceeded, _Stopped or BackendError."""
+    def sleep(self, seconds: float) -> None:
+        """Wait between retries (interrupted by a stop); tests replace it or set backoff 0."""
+        self.stop.wait(seconds)
+
+    def request(self, prompt: Prompt, k: int, seed: int | None, keys: list[str] | None = None,
+                episode: str | None = None) -> list[Completion]:
+        """Ask for k samples, retrying transient errors; raises BudgetExceeded, _Stopped or BackendError.
+
+        The answers are committed to the cache under `keys` the moment they are received, before the
+        ledger, parsing or aggregation touch them (the smallest window a kill can lose a paid answer in).
+        """
         from degusta_learn.prompting.costs import prompt_tokens
 
         c = self.cfg
@@ -146,19 +184,29 @@ class ZeroShotRun:
                 raise _Stopped()
             self.ledger.reserve(est_usd)
             try:
-                got = self.backend.complete(prompt, k, c.temperature, c.backend.max_tokens, seed)
+                try:
+                    got = _sanitize(self.backend.complete(prompt, k, c.temperature, c.backend.max_tokens, seed))
+                except (BackendError, DegustaError, KeyboardInterrupt):
+                    raise
+                except Exception as e:  # a client library's own exception, a local model's OOM: stop cleanly
+                    raise BackendError(f"{c.backend.name}: {type(e).__name__}: {str(e)[:300]}", fatal=True) from None
             except BackendError as e:
                 self.ledger.release(est_usd)
                 if e.fatal or not e.retryable or attempt == c.max_retries:
                     if not e.fatal:
                         self.ledger.count("failed_requests")
                     raise
-                delay = min(c.backoff_max, c.backoff * 2 ** attempt) * (0.5 + random.random())
+                delay = c.backoff * 2 ** min(attempt, 30) * (0.5 + random.random())
                 if e.retry_after is not None:
-                    delay = min(c.backoff_max, e.retry_after) * (1.0 + 0.1 * random.random())
+                    delay = e.retry_after * (1.0 + 0.1 * random.random())
                 self.ledger.count("retries")
-                self.stop.wait(delay)
+                self.sleep(max(0.0, min(c.backoff_max, delay)))  # never longer than backoff_max
                 continue
+            except BaseException:
+                self.ledger.release(est_usd)
+                raise
+            if self.cache is not None and keys is not None:
+                self.cache.put_many(list(zip(keys, got)), episode)  # committed before anything else
             self.ledger.release(est_usd)
             ins = [x.input_tokens for x in got]
             outs = [x.output_tokens for x in got]
@@ -168,15 +216,20 @@ class ZeroShotRun:
         raise AssertionError("unreachable")
 
     def episode(self, ep: Episode, prompt: Prompt, keys: list[str], hits: dict[str, Completion]) -> Prediction:
-        """Fetch the missing samples of one episode, then parse and aggregate all n (worker thread)."""
+        """Fetch the missing samples of one episode, then parse and aggregate all n (worker thread).
+
+        Raises _Unanswered when the server kept failing (retries exhausted) for some sample: the episode
+        is left for a re-run instead of being written as failed.
+        """
         c = self.cfg
         samples: list[Completion | None] = [hits.get(k) for k in keys]
         reasons: dict[int, str] = {}
         missing = [i for i, s in enumerate(samples) if s is None]
         while missing:
             seed = None if c.seed is None else c.seed + missing[0]
+            ask = missing[:1] if self.per_sample else missing  # per-sample APIs: each answer cached at once
             try:
-                got = self.request(prompt, len(missing), seed)
+                got = self.request(prompt, len(ask), seed, [keys[i] for i in ask], ep.id)
             except BudgetExceeded:
                 self.stop.set()  # at once, so no other worker starts a request
                 raise
@@ -184,18 +237,19 @@ class ZeroShotRun:
                 if e.fatal:
                     self.stop.set()
                     raise
+                if e.retryable:  # retries exhausted: a server fault, not an answer
+                    raise _Unanswered(str(e)) from None
                 for i in missing:
                     reasons[i] = f"request failed: {e}"
                 break
+            got = got[:len(ask)]
             if not got:
                 for i in missing:
                     reasons[i] = "the backend returned no answer"
                 break
-            for i, comp in zip(missing, got):
+            for i, comp in zip(ask, got):
                 samples[i] = comp
-                if self.cache is not None:
-                    self.cache.put(keys[i], comp, ep.id)
-            missing = missing[len(got):]
+            missing = [i for i in missing if samples[i] is None]
             if not self.cacheable:  # replay: one look-up, whatever is missing stays missing
                 for i in missing:
                     reasons[i] = "no recorded answer"
@@ -205,21 +259,28 @@ class ZeroShotRun:
     def predict(self, ep: Episode, samples: list[Completion | None], reasons: dict[int, str],
                 cached: int) -> Prediction:
         parsed = []
+        item_errors: list[dict] = []
+        n_items = 0
         for i, s in enumerate(samples):
             if s is None:
                 parsed.append(None)
                 continue
             try:
-                parsed.append(parse_answer(s.text, self.kind, self.ds.catalog, self.grid))
+                answer = read_answer(s.text, self.kind, self.ds.catalog, self.grid)
             except AnswerParseError as e:
                 reasons[i] = f"unparseable answer: {e}"
                 parsed.append(None)
+                continue
+            parsed.append(answer.items)
+            n_items += answer.n_read
+            item_errors += [{"sample": i, "reason": r} for r in answer.item_errors]
         placements, agg = aggregate(parsed, self.kind, self.grid)
         diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": self.cfg.n,
-                "cached": cached, "responses": [redact(s.text) if s else None for s in samples],
-                "failures": [{"sample": i, "reason": redact(r)} for i, r in sorted(reasons.items())], **agg}
+                "cached": cached, "responses": [s.text if s else None for s in samples],
+                "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
+                "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors, **agg}
         return Prediction(episode=ep.id, participant=ep.participant, target=ep.target, method=self.cfg.method,
-                          placements=placements, failed=agg["failed"], diagnostics=diag)
+                          placements=placements, failed=agg["failed"], diagnostics=redact_json(diag))
 
     # ------------------------------------------------------------------------- the run
 
@@ -230,6 +291,9 @@ class ZeroShotRun:
         self.cache = ResponseCache(self.cache_path) if self.cache_path and self.cacheable else None
         self.ledger = Ledger(self.price, c.budget_usd)
         results: dict[str, Prediction] = {}
+        unanswered: dict[str, str] = {}  # episode id -> the last server error
+        streak = [0]  # episodes in a row the server failed (reset by any answered episode)
+        give_up = max(3, c.concurrency + 1)
         stopped: str | None = None
         reused = [0, 0]  # tokens of cached answers (paid in an earlier run)
         start = time.time()
@@ -260,13 +324,22 @@ class ZeroShotRun:
                     ep = pending.pop(fut)
                     try:
                         results[ep.id] = fut.result()
+                        streak[0] = 0
                         bar.update(1)
                     except _Stopped:
                         pass
+                    except _Unanswered as e:
+                        unanswered[ep.id] = str(e)
+                        streak[0] += 1
+                        bar.update(1)
+                        if streak[0] >= give_up and not self.stop.is_set():
+                            stopped = stopped or (f"server: {streak[0]} episodes in a row got no answer "
+                                                  f"(last error: {e})")
+                            self.stop.set()
                     except BudgetExceeded as e:
                         stopped = stopped or f"budget: {e}"
                         self.stop.set()
-                    except BackendError as e:  # fatal (bad key, unknown model)
+                    except (BackendError, DegustaError) as e:  # fatal (bad key, unknown model), cache write
                         stopped = stopped or f"error: {e}"
                         self.stop.set()
                 bar.set_postfix_str(f"${self.ledger.summary()['cost_usd']:.4f}")
@@ -279,34 +352,51 @@ class ZeroShotRun:
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
             bar.close()
-            self.write_ledger(episodes, results, stopped, time.time() - start, reused)
+            self.write_ledger(episodes, results, unanswered, stopped, time.time() - start, reused)
             if self.cache is not None:
                 self.cache.close()
-        if stopped:
-            done_n = len(results)
-            raise DegustaError(f"zero-shot run stopped ({stopped}) after {done_n} of {len(episodes)} episodes; "
-                               f"finished answers are cached in {self.cache_path} and the spend is in "
-                               f"{self.ledger_path}; re-run the same command to resume (nothing was written to "
-                               f"{self.out})")
+        if stopped or unanswered:
+            raise DegustaError(redact(self.incomplete_message(episodes, results, unanswered, stopped)))
         return [results[ep.id] for ep in episodes]
+
+    def incomplete_message(self, episodes, results, unanswered, stopped) -> str:
+        """One line: why the run is incomplete, what is kept, and that a re-run asks only for what is missing."""
+        total, done = len(episodes), len(results)
+        if stopped:
+            head = f"zero-shot run stopped ({stopped}) after {done} of {total} episodes"
+        else:
+            last = next(reversed(unanswered.values()))
+            head = (f"zero-shot run incomplete: {len(unanswered)} of {total} episodes got no answer from the "
+                    f"server after {self.cfg.max_retries} retries (last error: {last})")
+        if self.cache is not None:
+            keep = (f"answers received are cached in {self.cache_path} and the spend is in {self.ledger_path}; "
+                    f"re-run the same command to ask only for the {total - done} unfinished episodes")
+        else:
+            keep = (f"the spend is in {self.ledger_path}; the cache is off, so a re-run asks for every "
+                    "episode again")
+        return f"{head}; {keep} (nothing was written to {self.out})"
 
     @property
     def ledger_path(self) -> Path:
         return self.out.parent / "ledger.json"
 
-    def write_ledger(self, episodes, results, stopped, wall_s, reused) -> None:
+    def write_ledger(self, episodes, results, unanswered, stopped, wall_s, reused) -> None:
         c = self.cfg
         summary = self.ledger.summary()
-        atomic_write_json(self.ledger_path, {
+        diags = [p.diagnostics for p in results.values()]
+        atomic_write_json(self.ledger_path, redact_json({
             "method": c.method, "backend": c.backend.name, "model": c.backend.model, "base_url": c.backend.base_url,
             "n": c.n, "episodes": len(episodes), "episodes_done": len(results),
-            "episodes_failed": sum(p.failed for p in results.values()), "stopped": stopped,
+            "episodes_failed": sum(p.failed for p in results.values()),
+            "episodes_unanswered": len(unanswered), "stopped": stopped,
+            "items_read": sum(d.get("n_items", 0) for d in diags),
+            "item_errors": sum(d.get("n_item_errors", 0) for d in diags),
             "wall_s": round(wall_s, 3), "cache": str(self.cache_path) if self.cache is not None else None,
             **summary,
             "cost_usd_per_episode": round(summary["cost_usd"] / max(1, len(results)), 6),
             "reused_from_cache": {"input_tokens": reused[0], "output_tokens": reused[1],
                                   "cost_usd": round(cost(self.price, *reused), 6)},
-        })
+        }))
 
 
 def run_zeroshot(cfg: ZeroShotConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction] | None:

@@ -8,7 +8,8 @@ timeouts, dropped connections) makes the runner back off and retry, `fatal=True`
 model) stops the run, anything else is recorded as a failure of that episode's samples.
 
 API keys are read only from the environment variable named by `api_key_env`, and `redact` scrubs them
-from every message a backend raises.
+(and any echoed Authorization / api-key header value) from every message a backend raises and from
+everything the prompting package writes.
 
 Example:
     backend = make_backend(BackendConfig(name="openai", model="gpt-4o"), grid, ds.catalog)
@@ -113,15 +114,38 @@ class BackendError(Exception):
 
 
 _KEY_PATTERN = re.compile(r"\b(sk-[A-Za-z0-9_\-*]{4,}|AIza[A-Za-z0-9_\-]{10,})")
+# The value of an auth header wherever it appears: `Authorization: Bearer X`, `"api-key": "X"`,
+# `x-api-key=X`, `'X-Goog-Api-Key': 'X'` (HTTP dumps, JSON, Python reprs, query strings).
+_HEADER_PATTERN = re.compile(
+    r"""(?i)((?:proxy-)?authorization|x-api-key|x-goog-api-key|api[-_]?key|access[-_]token)"""
+    r"""(["']?\s*[:=]\s*["']?)((?:bearer|basic|token)\s+)?([^\s"',;&}\])]+)""")
+REDACTED = "***"
 
 
-def redact(text: str) -> str:
-    """Remove API keys (the values of the known key variables, and sk-... / AIza... tokens) from text."""
+def redact(text):
+    """Text with every API key removed: the values of the key variables in use (and the known defaults),
+    any `Authorization` / `api-key` / `x-api-key` / `x-goog-api-key` header value, and sk-... / AIza...
+    tokens. The one function every write point of the prompting package passes text through (cache,
+    ledger, predictions diagnostics, error messages); non-text values are returned unchanged."""
+    if not isinstance(text, str) or not text:
+        return text
     for env in {*DEFAULT_KEY_ENV.values(), *_extra_key_envs}:
         value = os.environ.get(env)
-        if value and len(value) >= 4:
-            text = text.replace(value, "***")
-    return _KEY_PATTERN.sub("***", text)
+        if value and len(value) >= 4 and value in text:
+            text = text.replace(value, REDACTED)
+    text = _HEADER_PATTERN.sub(lambda m: m.group(1) + m.group(2) + (m.group(3) or "") + REDACTED, text)
+    return _KEY_PATTERN.sub(REDACTED, text)
+
+
+def redact_json(value):
+    """`redact` applied to every string (keys and values) of a JSON-like value."""
+    if isinstance(value, str):
+        return redact(value)
+    if isinstance(value, dict):
+        return {redact(k) if isinstance(k, str) else k: redact_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [redact_json(v) for v in value]
+    return value
 
 
 _extra_key_envs: set[str] = set()

@@ -18,6 +18,8 @@ Example:
 from __future__ import annotations
 
 import email.utils
+import json
+import math
 import time
 from urllib.parse import urlparse
 
@@ -32,23 +34,30 @@ def is_local(base_url: str | None) -> bool:
 
 
 def retry_after(headers) -> float | None:
-    """Seconds from a Retry-After (seconds or HTTP date) or retry-after-ms header, if any."""
-    if headers is None:
-        return None
-    ms = headers.get("retry-after-ms")
-    if ms:
-        try:
-            return float(ms) / 1000.0
-        except ValueError:
-            pass
-    value = headers.get("retry-after")
-    if not value:
-        return None
+    """Seconds from a Retry-After (seconds or HTTP date) or retry-after-ms header, if any (None when absent
+    or unreadable: a malformed header never raises)."""
     try:
-        return max(0.0, float(value))
-    except ValueError:
-        parsed = email.utils.parsedate_to_datetime(value) if value else None
-        return max(0.0, parsed.timestamp() - time.time()) if parsed else None
+        if headers is None:
+            return None
+        ms = headers.get("retry-after-ms")
+        if ms:
+            try:
+                value = float(ms) / 1000.0
+                if math.isfinite(value):
+                    return max(0.0, value)
+            except ValueError:
+                pass
+        value = headers.get("retry-after")
+        if not value:
+            return None
+        try:
+            seconds = float(value)
+            return max(0.0, seconds) if math.isfinite(seconds) else None
+        except ValueError:
+            parsed = email.utils.parsedate_to_datetime(value)
+            return max(0.0, parsed.timestamp() - time.time()) if parsed else None
+    except Exception:  # a garbled date or header object
+        return None
 
 
 def split_usage(total: int | None, k: int) -> list[int | None]:
@@ -122,12 +131,53 @@ class OpenAIBackend:
             raise BackendError(f"openai: cannot reach the server ({_message(e)})", retryable=True) from None
         except openai.OpenAIError as e:
             raise BackendError(f"openai: {_message(e)}") from None
-        choices = getattr(resp, "choices", None) or []
+        except ValueError as e:  # a 200 whose JSON body is malformed (JSONDecodeError, pydantic errors)
+            raise BackendError(f"openai: {self.model} answered with a malformed body ({type(e).__name__}); "
+                               "retrying", retryable=True) from None
+        return completions(resp, self.model)
+
+
+def completions(resp, model: str) -> list[Completion]:
+    """The samples of a chat-completions response; a body that is not one (an HTML error page, a proxy's
+    text, JSON of another shape, all with status 200) raises a retryable BackendError, as real clients
+    retry it."""
+    if isinstance(resp, (str, bytes)) or not isinstance(getattr(resp, "choices", None), list):
+        head = str(resp)[:80] if isinstance(resp, (str, bytes)) else type(resp).__name__
+        raise BackendError(f"openai: {model} answered 200 with a body that is not a chat completion "
+                           f"({head!r}...)", retryable=True)
+    try:
+        choices = list(resp.choices)
         usage = getattr(resp, "usage", None)
-        ins = split_usage(getattr(usage, "prompt_tokens", None), len(choices))
-        outs = split_usage(getattr(usage, "completion_tokens", None), len(choices))
-        return [Completion(text=(c.message.content or "") if c.message else "", input_tokens=i, output_tokens=o)
-                for c, i, o in zip(choices, ins, outs)]
+        ins = split_usage(_count(getattr(usage, "prompt_tokens", None)), len(choices))
+        outs = split_usage(_count(getattr(usage, "completion_tokens", None)), len(choices))
+        out = []
+        for c, i, o in zip(choices, ins, outs):
+            if not hasattr(c, "message"):
+                raise TypeError("a choice without a message")
+            message = c.message
+            text = getattr(message, "content", None) if message is not None else None
+            out.append(Completion(text=_text(text), input_tokens=i, output_tokens=o))
+        return out
+    except BackendError:
+        raise
+    except Exception as e:  # a JSON body of the right keys but wrong types
+        raise BackendError(f"openai: {model} answered with a malformed chat completion ({type(e).__name__})",
+                           retryable=True) from None
+
+
+def _count(v) -> int | None:
+    return v if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 62 else None
+
+
+def _text(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, str):
+        return v
+    try:  # content given as parts or any other JSON: keep it as text (it will fail to parse, counted)
+        return json.dumps(v, default=str)[:1_000_000]
+    except Exception:
+        return str(type(v).__name__)
 
 
 def _message(e: Exception) -> str:
