@@ -103,3 +103,20 @@ def test_bad_input_is_a_degusta_error():
         match(CAT, [0], [999], [[0, 0]], [[0, 0]])
     with pytest.raises(DegustaError, match="positions"):
         match(CAT, [0, 1], [2], [[0, 0]], [[0, 0]])
+
+
+def test_feature_table_with_sparse_huge_ids_allocates_nothing_by_id():
+    """An id of 1e11 once sized a dense id -> row array (745 GiB); sparse ids use a sorted lookup."""
+    from degusta_learn.metrics.matching import FeatureTable
+
+    class Sparse:
+        ids = [7, 10**11, 3]
+
+        def features(self, ids):
+            return np.arange(len(ids) * 2).reshape(len(ids), 2)
+
+    table = FeatureTable(Sparse())
+    assert table.row is None
+    assert table.rows([10**11, 3, 7], "ids").tolist() == [1, 2, 0]
+    with pytest.raises(DegustaError, match="unknown object id 8"):
+        table.rows([7, 8], "ids")

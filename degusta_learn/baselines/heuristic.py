@@ -39,7 +39,7 @@ from degusta_learn.baselines.transfer import (
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.scene import Arrangement, Dataset, Episode, Prediction, Table, split_participants
-from degusta_learn.synth.geometry import bounds, inside
+from degusta_learn.synth.geometry import bounds, inside, to_relative
 
 Rows = tuple[list[int], np.ndarray, np.ndarray]  # objects, relative positions (N, 2), rotations (N,)
 
@@ -111,7 +111,7 @@ def run_random(cfg: RandomConfig, ds: Dataset, episodes: list[Episode]) -> list[
         ok = inside(table, cand)
         first = np.where(ok.any(1), ok.argmax(1), 0)
         xy = cand[np.arange(n), first]
-        uv = (xy - [x0, y0]) / [x1 - x0, y1 - y0]
+        uv = to_relative(table, xy)
         out.append(_prediction(cfg, ep, place_on(table, ds.catalog, objects, uv, rng.uniform(0, 360, n))))
     return out
 

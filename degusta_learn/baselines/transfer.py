@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 
 import numpy as np
 
@@ -28,25 +29,34 @@ def place_on(table: Table, catalog: Catalog, objects: list[int], uv: np.ndarray,
     """Placements of `objects` at relative positions `uv` (N, 2) and rotations `rot` (N,) on `table`."""
     if not objects:
         return []
-    rot = np.asarray(rot, dtype=float) % 360.0
+    rot = np.nan_to_num(np.asarray(rot, dtype=float), nan=0.0, posinf=0.0, neginf=0.0) % 360.0
+    uv = np.nan_to_num(np.asarray(uv, dtype=float), nan=0.5, posinf=1.0, neginf=0.0)
     xy = fit_into(table, to_table(table, uv), rot, sizes_of([catalog[o].type for o in objects]))
-    xy = np.clip(xy, 0.0, 1.0)
+    xy = np.clip(np.nan_to_num(xy, nan=0.5), 0.0, 1.0)
     return [Placement(int(o), float(x), float(y), float(r)) for o, (x, y), r in zip(objects, xy, rot)]
 
 
 def _fill(table: Table) -> float:
     pts = np.asarray(table.surface, dtype=float)
     area = 0.5 * abs(np.dot(pts[:, 0], np.roll(pts[:, 1], -1)) - np.dot(pts[:, 1], np.roll(pts[:, 0], -1)))
+    w, h = _extent(table)
+    return float(area / (w * h)) if w * h > 1e-12 else 0.0
+
+
+def _extent(table: Table) -> tuple[float, float]:
+    """Width and height of the surface's bounding box, floored at 1e-9 (degenerate surfaces: no 0 / 0)."""
     x0, y0, x1, y1 = bounds(table)
-    return float(area / max((x1 - x0) * (y1 - y0), 1e-12))
+    return max(x1 - x0, 1e-9), max(y1 - y0, 1e-9)
 
 
 def table_distance(a: Table, b: Table) -> float:
-    """0 for the same shape and size; grows with differences in width, height and fill."""
-    ax0, ay0, ax1, ay1 = bounds(a)
-    bx0, by0, bx1, by1 = bounds(b)
-    return float(abs(np.log((ax1 - ax0) / (bx1 - bx0))) + abs(np.log((ay1 - ay0) / (by1 - by0)))
-                 + 2.0 * abs(_fill(a) - _fill(b)))
+    """0 for the same shape and size; grows with differences in width, height and fill.
+
+    Finite for every pair of tables, degenerate ones included (load_dataset rejects those; a Table built
+    in code may still be one).
+    """
+    (aw, ah), (bw, bh) = _extent(a), _extent(b)
+    return float(abs(math.log(aw / bw)) + abs(math.log(ah / bh)) + 2.0 * abs(_fill(a) - _fill(b)))
 
 
 def circular_mean(degrees) -> float:

@@ -44,8 +44,12 @@ class FeatureTable:
     def __init__(self, catalog: Catalog):
         ids = np.asarray(catalog.ids, dtype=np.int64)
         self.size = len(ids)
-        self.row = np.full(int(ids.max(initial=-1)) + 1, -1, dtype=np.int64)
-        self.row[ids] = np.arange(len(ids))
+        self.row = None  # dense id -> row table only when ids are compact (an id of 1e11 must not allocate 745 GiB)
+        if ids.size and ids.min() >= 0 and ids.max() < 4 * len(ids) + 1024:
+            self.row = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
+            self.row[ids] = np.arange(len(ids))
+        self._order = np.argsort(ids, kind="stable")
+        self._sorted = ids[self._order]
         self.row_of = {int(i): r for r, i in enumerate(ids.tolist())}  # fast path for a few ids
         self.features = catalog.features(ids)  # (K, F)
         self.hamming = None
@@ -56,8 +60,13 @@ class FeatureTable:
     def rows(self, ids, what: str) -> np.ndarray:
         """Rows of `ids` (any shape); DegustaError naming the first id the catalog lacks."""
         ids = np.asarray(ids, dtype=np.int64)
-        ok = (ids >= 0) & (ids < len(self.row))
-        rows = np.where(ok, self.row[np.where(ok, ids, 0)], -1)
+        if self.row is not None:
+            ok = (ids >= 0) & (ids < len(self.row))
+            rows = np.where(ok, self.row[np.where(ok, ids, 0)], -1)
+        else:
+            pos = np.clip(np.searchsorted(self._sorted, ids), 0, max(self.size - 1, 0))
+            found = (self._sorted[pos] == ids) if self.size else np.zeros(ids.shape, dtype=bool)
+            rows = np.where(found, self._order[pos] if self.size else -1, -1)
         if (rows < 0).any():
             bad = ids.ravel()[np.argmax(rows.ravel() < 0)]
             raise DegustaError(f"{what}: unknown object id {int(bad)} (not in the catalog of {self.size} objects)")

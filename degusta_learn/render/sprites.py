@@ -11,7 +11,9 @@ rim and handle. Patterns paint the accent colour (colour2, or a darker/lighter c
 objects). Parts are drawn at 3x supersampling with a dark outline, then box-filtered down.
 
 An object with `image` (a path relative to the dataset root) is drawn from that picture instead:
-converted to RGBA and scaled to fit its footprint box (aspect kept, centred).
+converted to RGBA and scaled to fit its footprint box (aspect kept, centred). Pictures must stay inside
+the dataset folder, be PNG/JPEG/WEBP/GIF/BMP/TIFF and have at most `MAX_IMAGE_PIXELS` pixels; anything
+else (a corrupt file, a decompression bomb) is a DegustaError naming the file.
 
 Example:
     from degusta_learn.scene import default_catalog
@@ -22,6 +24,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +33,7 @@ from PIL import Image, ImageFilter, UnidentifiedImageError
 from degusta_learn.errors import DegustaError
 from degusta_learn.render import materials, shapes
 from degusta_learn.scene import CatalogObject, object_size
+from degusta_learn.scene.validate import MAX_IMAGE_PIXELS, Where, file_inside
 
 CUTLERY = ("fork", "knife", "spoon")
 _SECOND = {"head", "rim"}  # roles painted with colour2/material2 (cup handles too, see _role_style)
@@ -76,7 +80,7 @@ def load_picture(obj: CatalogObject, w_px: int, l_px: int, root: str | None) -> 
     if root is None:
         raise DegustaError(f"object {obj.id}: image {obj.image!r} is relative to a dataset folder, but the "
                            "renderer has no root (use Renderer.for_dataset or pass root=)")
-    path = Path(root) / obj.image
+    path = picture_path(root, obj.image, f"image of object {obj.id}")
     pic = open_picture(path, f"image of object {obj.id}")
     scale = min(w_px / pic.width, l_px / pic.height)
     size = (max(1, round(pic.width * scale)), max(1, round(pic.height * scale)))
@@ -86,15 +90,44 @@ def load_picture(obj: CatalogObject, w_px: int, l_px: int, root: str | None) -> 
     return out
 
 
+# Pictures may come from a user's dataset: only these decoders are used (no EPS/Ghostscript, no exotic
+# formats), and at most MAX_IMAGE_PIXELS pixels are decoded (Pillow's own global limit is left alone).
+PICTURE_FORMATS = ("PNG", "JPEG", "WEBP", "GIF", "BMP", "TIFF")
+
+
+def picture_path(root: str | Path, relative: str, what: str) -> Path:
+    """`root/relative`, refused (DegustaError) when it would leave the dataset folder `root`.
+
+    load_dataset already rejects such paths; this guards catalogs and tables built in code.
+    """
+    where = Where(what)
+    try:
+        return file_inside(Path(root), relative, "image", where)
+    except DegustaError as e:
+        raise DegustaError(str(e).replace(f"{what}: field 'image': ", f"{what}: ", 1)) from None
+
+
 def open_picture(path: Path, what: str) -> Image.Image:
-    """Open `path` as RGBA; DegustaError naming the file when it is missing or not an image."""
+    """Open `path` as RGBA; DegustaError naming the file when it is missing, too large or not an image."""
     if not path.is_file():
         raise DegustaError(f"{path}: {what} not found")
     try:
-        with Image.open(path) as f:
-            return f.convert("RGBA")
-    except (UnidentifiedImageError, OSError, ValueError) as e:
-        raise DegustaError(f"{path}: {what} is not a readable image ({e})") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(path, formats=PICTURE_FORMATS) as f:
+                if f.width * f.height > MAX_IMAGE_PIXELS:
+                    raise DegustaError(f"{path}: {what} is {f.width} x {f.height} pixels, over the limit of "
+                                       f"{MAX_IMAGE_PIXELS} pixels (a decompression bomb?)")
+                return f.convert("RGBA")
+    except DegustaError:
+        raise
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise DegustaError(f"{path}: {what} is too large to decode ({e})") from None
+    except UnidentifiedImageError:
+        raise DegustaError(f"{path}: {what} is not a readable image (not one of "
+                           f"{', '.join(PICTURE_FORMATS)})") from None
+    except Exception as e:  # noqa: BLE001 - a corrupt file may fail anywhere in a decoder
+        raise DegustaError(f"{path}: {what} is not a readable image ({type(e).__name__}: {e})"[:300]) from None
 
 
 def _role_style(obj: CatalogObject, role: str):

@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFilter
 
 from degusta_learn.render.materials import stable_rng
-from degusta_learn.render.sprites import open_picture
+from degusta_learn.render.sprites import open_picture, picture_path
 from degusta_learn.scene import Table
 
 LOOKS = {  # name -> (texture, base colour)
@@ -102,7 +102,7 @@ def _table_image(table: Table, w: int, h: int, root: str | None) -> Image.Image:
 
             raise DegustaError(f"table {table.id}: image {table.image!r} is relative to a dataset folder, but "
                                "the renderer has no root (use Renderer.for_dataset or pass root=)")
-        pic = open_picture(Path(root) / table.image, f"image of table {table.id}")
+        pic = open_picture(picture_path(root, table.image, f"image of table {table.id}"), f"image of table {table.id}")
         return pic.convert("RGB").resize((w, h), Image.Resampling.LANCZOS)
     rng = stable_rng("table", table.id, table.name, w, h)
     kind, base = look(table)

@@ -11,7 +11,7 @@ from degusta_learn.scene.catalog import (
     default_catalog,
     object_size,
 )
-from degusta_learn.scene.dataset import Dataset, load_dataset, parse_placements, save_dataset
+from degusta_learn.scene.dataset import Dataset, load_dataset, parse_placements, save_dataset, validate_dataset
 from degusta_learn.scene.episodes import (
     CONTEXT_LENGTHS,
     SPLITS,
@@ -30,5 +30,5 @@ __all__ = [
     "Arrangement", "Catalog", "CatalogObject", "Dataset", "Episode", "Placement", "Prediction", "Rating", "Table",
     "default_catalog", "default_tables", "load_dataset", "make_episodes", "object_size", "participants_in",
     "parse_placements", "read_episodes", "read_predictions", "save_dataset", "split_participants",
-    "write_episodes", "write_predictions",
+    "validate_dataset", "write_episodes", "write_predictions",
 ]

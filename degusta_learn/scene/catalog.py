@@ -100,7 +100,8 @@ class Catalog:
     objects: tuple[CatalogObject, ...]
     _by_id: dict[int, CatalogObject] = field(init=False, repr=False, compare=False)
     _features: np.ndarray = field(init=False, repr=False, compare=False)
-    _row: np.ndarray = field(init=False, repr=False, compare=False)
+    _row: np.ndarray | None = field(init=False, repr=False, compare=False)
+    _sorted: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         by_id = {o.id: o for o in self.objects}
@@ -109,11 +110,18 @@ class Catalog:
         codes = {}
         feats = np.array([[codes.setdefault((f, getattr(o, f)), len(codes)) for f in MATCH_FEATURES]
                           for o in self.objects], dtype=np.int32).reshape(len(self.objects), len(MATCH_FEATURES))
-        row = np.full(max(by_id, default=-1) + 1, -1, dtype=np.int64)
-        for i, o in enumerate(self.objects):
-            row[o.id] = i
+        # Rows by id: a dense id -> row table when ids are compact (the usual 0..124), else a sorted-id
+        # search, so that a large id never sizes an allocation (an id of 1e11 once asked for 745 GiB).
+        ids = np.array([o.id for o in self.objects], dtype=np.int64)
+        if len(ids) and ids.min() >= 0 and ids.max() < 4 * len(ids) + 1024:
+            row = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
+            row[ids] = np.arange(len(ids))
+        else:
+            row = None
+        order = np.argsort(ids, kind="stable")
         object.__setattr__(self, "_features", feats)
         object.__setattr__(self, "_row", row)
+        object.__setattr__(self, "_sorted", (ids[order], order))
 
     def __len__(self) -> int:
         return len(self.objects)
@@ -142,7 +150,16 @@ class Catalog:
 
     def features(self, ids) -> np.ndarray:
         """Integer feature codes (len(ids), len(MATCH_FEATURES)) for Hamming-distance matching."""
-        return self._features[self._row[np.asarray(ids, dtype=np.int64)]]
+        ids = np.asarray(ids, dtype=np.int64)
+        if self._row is not None and (ids.size == 0 or (ids.min() >= 0 and ids.max() < len(self._row))):
+            rows = self._row[ids]
+        else:
+            keys, order = self._sorted
+            pos = np.clip(np.searchsorted(keys, ids), 0, max(len(keys) - 1, 0))
+            rows = np.where(keys[pos] == ids, order[pos], -1) if len(keys) else np.full(ids.shape, -1)
+        if rows.size and rows.min() < 0:
+            raise KeyError(f"object id {int(ids.flat[int(np.argmin(rows))])} is not in the catalog")
+        return self._features[rows]
 
     def to_json(self) -> list[dict]:
         return [o.to_json() for o in self.objects]

@@ -6,24 +6,38 @@ A dataset is a folder::
     tables.json         list of {"id", "width", "height", "surface": [[x, y], ...], optional "name", "image"}
     arrangements.jsonl  one arrangement a line: {"participant", "trial", "table", "placements": [...]}
     ratings.jsonl       optional jitter-study ratings
-    meta.json           optional: {"synthetic": bool, "generator": str, "seed": int, "min_objects": int, ...}
+    meta.json           optional: {"synthetic": bool, "generator": str, "seed": int, "min_objects": int,
+                        "vocabulary": {"classes"|"colors"|"materials": [extra words]}, ...}
 
-`load_dataset` validates everything and raises `DegustaError` naming the file, the line and the field.
+`load_dataset` validates everything and raises `DegustaError` naming the file, the line and the field;
+`validate_dataset` applies the same rules to a dataset in memory (the generators check their output
+with it). The rules, in one place: JSON types; ids 0..MAX_ID, trials 0..MAX_TRIAL, coordinates in
+[0, 1], finite numbers (the readers refuse NaN/inf and oversized numbers); classes, colours and
+materials from the vocabulary; table surfaces that are real polygons (>= 3 distinct points, area
+>= MIN_SURFACE_AREA); pictures and named files that stay inside the dataset folder (no '..', no
+absolute paths, no symbolic links out) and, for PNG, at most MAX_IMAGE_PIXELS pixels. An optional file
+that is present but unreadable (a symlink loop, a folder) is an error, never skipped.
 It never writes into the folder. `save_dataset` writes every file atomically.
 """
 
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json, atomic_write_jsonl, read_json, read_jsonl
-from degusta_learn.scene.catalog import Catalog, CatalogObject
+from degusta_learn.scene.catalog import COLORS, MATERIALS, TYPES, Catalog, CatalogObject
 from degusta_learn.scene.tables import Table
 from degusta_learn.scene.types import Arrangement, Placement, Rating
-from degusta_learn.scene.validate import Where, get, require_mapping, unit_interval
+from degusta_learn.scene.validate import (
+    MAX_ID, MAX_TRIAL, Where, check_picture, file_inside, get, in_vocabulary, relative_path, require_mapping,
+    unit_interval,
+)
 
 DEFAULT_MIN_OBJECTS = 3
 
@@ -74,23 +88,42 @@ class Dataset:
 
 
 def load_dataset(root: str | Path) -> Dataset:
-    """Read and validate a dataset folder; errors name file, line and field."""
+    """Read and validate a dataset folder; errors name file, line and field (see `validate_dataset`)."""
     root = Path(root)
     if not root.is_dir():
+        if root.exists() or root.is_symlink():
+            raise DegustaError(f"{root}: not a dataset folder (not a readable folder)")
         raise DegustaError(f"{root}: dataset folder not found")
-    meta = {}
-    if (root / "meta.json").exists():
-        meta = read_json(root / "meta.json")
-        if not isinstance(meta, dict):
-            raise DegustaError(f"{root / 'meta.json'}: expected a JSON object")
-    catalog = _load_catalog(root / "catalog.json", root)
-    tables = _load_tables(root / "tables.json", root)
-    min_objects = meta.get("min_objects", DEFAULT_MIN_OBJECTS)
-    arrangements = _load_arrangements(root / "arrangements.jsonl", catalog, tables, min_objects)
+    meta = _parse_meta(read_json(root / "meta.json") if _present(root / "meta.json") else {}, root / "meta.json", root)
+    vocab = _vocabulary(meta, root / "meta.json")
+    catalog = _parse_catalog(read_json(root / "catalog.json"), root / "catalog.json", root, vocab)
+    tables = _parse_tables(read_json(root / "tables.json"), root / "tables.json", root)
+    arrangements = _parse_arrangements(read_jsonl(root / "arrangements.jsonl"), root / "arrangements.jsonl",
+                                       catalog, tables, meta.get("min_objects", DEFAULT_MIN_OBJECTS))
     ratings = None
-    if (root / "ratings.jsonl").exists():
-        ratings = _load_ratings(root / "ratings.jsonl")
+    if _present(root / "ratings.jsonl"):
+        ratings = _parse_ratings(read_jsonl(root / "ratings.jsonl"), root / "ratings.jsonl")
     return Dataset(catalog, tables, arrangements, ratings, meta, root)
+
+
+def validate_dataset(ds: Dataset) -> Dataset:
+    """Check an in-memory dataset by the same rules as `load_dataset` (e.g. a generator's output).
+
+    The dataset is put through the exact JSON form `save_dataset` writes, so whatever passes here loads.
+    Errors name the file the entry would be written to. Pictures are checked only when `ds.root` is set.
+    """
+    base = ds.root if ds.root is not None else Path("<in memory>")
+    meta = _parse_meta(ds.meta, base / "meta.json", ds.root)
+    catalog = _parse_catalog(ds.catalog.to_json(), base / "catalog.json", ds.root, _vocabulary(meta, base / "meta.json"))
+    tables = _parse_tables([t.to_json() for t in ds.tables.values()], base / "tables.json", ds.root)
+    for tid, table in ds.tables.items():
+        if table.id != tid:
+            raise DegustaError(f"{base / 'tables.json'}: table {table.id} is stored under id {tid}")
+    _parse_arrangements(((i, a.to_json()) for i, a in enumerate(ds.arrangements, start=1)),
+                        base / "arrangements.jsonl", catalog, tables, meta.get("min_objects", DEFAULT_MIN_OBJECTS))
+    if ds.ratings is not None:
+        _parse_ratings(((i, r.to_json()) for i, r in enumerate(ds.ratings, start=1)), base / "ratings.jsonl")
+    return ds
 
 
 def save_dataset(ds: Dataset, root: str | Path) -> Path:
@@ -107,37 +140,80 @@ def save_dataset(ds: Dataset, root: str | Path) -> Path:
     return root
 
 
-def _check_image(value, root: Path, where: Where) -> str | None:
+def _present(path: Path) -> bool:
+    """Whether an optional file is there: anything at the path, even a broken or looping symbolic link,
+    counts (and is then read, so that it fails loudly instead of being silently skipped)."""
+    return os.path.lexists(path)
+
+
+META_KEYS = {"name": "str", "generator": "str", "description": "str", "latent_styles": "str", "episodes": "str"}
+PATH_KEYS = ("latent_styles", "episodes")
+VOCABULARY_KEYS = {"classes": TYPES, "colors": COLORS, "materials": MATERIALS}
+
+
+def _parse_meta(meta, path: Path, root: Path | None) -> dict:
+    """meta.json: optional, a JSON object; known keys are type-checked, others are kept as they are."""
+    if not isinstance(meta, dict):
+        raise DegustaError(f"{path}: expected a JSON object, got {type(meta).__name__}")
+    w = Where(path)
+    get(meta, "synthetic", "bool", w, optional=True)
+    get(meta, "seed", "int", w, optional=True)
+    get(meta, "min_objects", "int", w, optional=True, lo=1, hi=1000)
+    for key, kind in META_KEYS.items():
+        get(meta, key, kind, w, optional=True)
+    for key in PATH_KEYS:  # files the dataset names (the oracle reads latent_styles): inside the folder
+        if meta.get(key) is None:
+            continue
+        relative_path(meta[key], key, w)
+        if root is not None and _present(root / meta[key]):
+            file_inside(root, meta[key], key, w)
+    vocab = meta.get("vocabulary")
+    if vocab is not None:
+        if not isinstance(vocab, dict):
+            raise w.fail("vocabulary", f"expected an object with lists {', '.join(VOCABULARY_KEYS)}")
+        for key, words in vocab.items():
+            if key not in VOCABULARY_KEYS:
+                raise w.fail(f"vocabulary.{key}", f"unknown key (expected one of {', '.join(VOCABULARY_KEYS)})")
+            if not isinstance(words, list) or not all(isinstance(x, str) and 0 < len(x) <= 100 for x in words):
+                raise w.fail(f"vocabulary.{key}", "expected a list of non-empty words")
+    return meta
+
+
+def _vocabulary(meta: dict, path: Path) -> dict[str, tuple[str, ...]]:
+    """The dataset's words: the design's classes, colours and materials plus any meta.json `vocabulary` adds."""
+    extra = meta.get("vocabulary") or {}
+    return {key: tuple(dict.fromkeys([*base, *extra.get(key, [])])) for key, base in VOCABULARY_KEYS.items()}
+
+
+def _check_image(value, root: Path | None, where: Where) -> str | None:
+    """An optional picture: a path relative to the dataset folder that stays inside it and is an image."""
     if value is None:
         return None
-    if not isinstance(value, str) or not value:
-        raise where.fail("image", f"expected a relative path string, got {value!r}")
-    if not (root / value).is_file():
-        raise where.fail("image", f"file {root / value} not found")
-    return value
+    if root is None:
+        return relative_path(value, "image", where)
+    return check_picture(root, value, "image", where)
 
 
-def _load_catalog(path: Path, root: Path) -> Catalog:
-    data = read_json(path)
+def _parse_catalog(data, path: Path, root: Path | None, vocab: dict) -> Catalog:
     if not isinstance(data, list) or not data:
         raise DegustaError(f"{path}: expected a non-empty JSON list of objects")
     objects, seen = [], set()
     for i, entry in enumerate(data):
         w = Where(path, index=i)
         require_mapping(entry, w)
-        oid = get(entry, "id", "int", w)
-        if oid < 0:
-            raise w.fail("id", f"expected a non-negative integer, got {oid}")
+        oid = get(entry, "id", "int", w, lo=0, hi=MAX_ID)
         if oid in seen:
             raise w.fail("id", f"duplicate object id {oid}")
         seen.add(oid)
-        color1 = get(entry, "color1", "str", w)
-        material1 = get(entry, "material1", "str", w)
+        words = {}
+        for key, kind in (("class", "classes"), ("color1", "colors"), ("color2", "colors"),
+                          ("material1", "materials"), ("material2", "materials")):
+            default = words.get(key[:-1] + "1") if key.endswith("2") else None
+            value = get(entry, key, "str", w, optional=key.endswith("2"), default=default)
+            words[key] = in_vocabulary(value, vocab[kind], key, w)
         objects.append(CatalogObject(
-            id=oid, type=get(entry, "class", "str", w), color1=color1,
-            color2=get(entry, "color2", "str", w, optional=True, default=color1),
-            material1=material1,
-            material2=get(entry, "material2", "str", w, optional=True, default=material1),
+            id=oid, type=words["class"], color1=words["color1"], color2=words["color2"],
+            material1=words["material1"], material2=words["material2"],
             shape=get(entry, "shape", "str", w, optional=True, default="round"),
             pattern=get(entry, "pattern", "str", w, optional=True, default="solid"),
             texture=get(entry, "texture", "str", w, optional=True, default="smooth"),
@@ -146,33 +222,53 @@ def _load_catalog(path: Path, root: Path) -> Catalog:
     return Catalog(tuple(objects))
 
 
-def _load_tables(path: Path, root: Path) -> dict[int, Table]:
-    data = read_json(path)
+MIN_SURFACE_AREA = 0.01  # of the table image: smaller surfaces cannot hold a plate
+MAX_SURFACE_POINTS = 10_000
+MAX_TABLE_PIXELS = 100_000  # width and height of a table image
+
+
+def _parse_tables(data, path: Path, root: Path | None) -> dict[int, Table]:
     if not isinstance(data, list) or not data:
         raise DegustaError(f"{path}: expected a non-empty JSON list of tables")
     tables = {}
     for i, entry in enumerate(data):
         w = Where(path, index=i)
         require_mapping(entry, w)
-        tid = get(entry, "id", "int", w)
+        tid = get(entry, "id", "int", w, lo=0, hi=MAX_ID)
         if tid in tables:
             raise w.fail("id", f"duplicate table id {tid}")
-        width, height = get(entry, "width", "int", w), get(entry, "height", "int", w)
-        if width <= 0 or height <= 0:
-            raise w.fail("width" if width <= 0 else "height", "expected a positive pixel size")
+        width = get(entry, "width", "int", w, lo=1, hi=MAX_TABLE_PIXELS)
+        height = get(entry, "height", "int", w, lo=1, hi=MAX_TABLE_PIXELS)
         surface = get(entry, "surface", "list", w)
-        if len(surface) < 3:
-            raise w.fail("surface", "expected a polygon of at least 3 [x, y] points")
+        if not 3 <= len(surface) <= MAX_SURFACE_POINTS:
+            raise w.fail("surface", f"expected a polygon of 3 to {MAX_SURFACE_POINTS} [x, y] points, got {len(surface)}")
         pts = []
         for j, pt in enumerate(surface):
             ok = isinstance(pt, list) and len(pt) == 2 and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in pt)
             if not ok:
-                raise w.fail("surface", f"point {j} must be [x, y] with both in [0, 1], got {pt!r}")
+                raise w.fail("surface", f"point {j} must be [x, y] with both in [0, 1], got {pt!r}"[:200])
             pts.append((float(pt[0]), float(pt[1])))
-        tables[tid] = Table(tid, width, height, tuple(pts), name=str(entry.get("name") or ""),
+        _check_surface(pts, w)
+        name = entry.get("name")
+        if name is not None and not isinstance(name, str):
+            raise w.fail("name", f"expected a string, got {type(name).__name__}")
+        if name and len(name) > 100:
+            raise w.fail("name", f"name of {len(name)} characters is too long (at most 100)")
+        tables[tid] = Table(tid, width, height, tuple(pts), name=name or "",
                             image=_check_image(entry.get("image"), root, w))
     return tables
+
+
+def _check_surface(pts: list[tuple[float, float]], w: Where) -> None:
+    """Reject degenerate surfaces: fewer than 3 distinct points, collinear points, (almost) no area."""
+    if len(set(pts)) < 3:
+        raise w.fail("surface", f"degenerate polygon: only {len(set(pts))} distinct points (at least 3 needed)")
+    xy = np.asarray(pts, dtype=float)
+    area = 0.5 * abs(float(np.dot(xy[:, 0], np.roll(xy[:, 1], -1)) - np.dot(xy[:, 1], np.roll(xy[:, 0], -1))))
+    if area < MIN_SURFACE_AREA:
+        raise w.fail("surface", f"degenerate polygon: area {area:.4g} of the image (points collinear, repeated "
+                                f"or too close; a table surface must cover at least {MIN_SURFACE_AREA})")
 
 
 def parse_placements(items: list, catalog: Catalog, where: Where, key: str = "placements") -> list[Placement]:
@@ -180,11 +276,11 @@ def parse_placements(items: list, catalog: Catalog, where: Where, key: str = "pl
     out, seen = [], set()
     for j, p in enumerate(items):
         if not isinstance(p, dict):
-            raise where.fail(f"{key}[{j}]", f"expected an object, got {p!r}")
+            raise where.fail(f"{key}[{j}]", f"expected an object, got {p!r}"[:200])
         sub = f"{key}[{j}]."
         oid = get(p, "object", "int", _Prefixed(where, sub))
         if oid not in catalog:
-            raise where.fail(f"{sub}object", f"unknown object id {oid} (not in the catalog)")
+            raise where.fail(f"{sub}object", f"unknown object id {oid} (not in the catalog)"[:200])
         if oid in seen:
             raise where.fail(f"{sub}object", f"object {oid} is placed twice")
         seen.add(oid)
@@ -206,20 +302,21 @@ class _Prefixed(Where):
         return super().fail(self.prefix + field if field else None, message)
 
 
-def _load_arrangements(path: Path, catalog: Catalog, tables: dict[int, Table], min_objects: int) -> list[Arrangement]:
+def _parse_arrangements(lines, path: Path, catalog: Catalog, tables: dict[int, Table],
+                        min_objects: int) -> list[Arrangement]:
     out, seen = [], {}
-    for lineno, entry in read_jsonl(path):
+    for lineno, entry in lines:
         w = Where(path, line=lineno)
         require_mapping(entry, w)
         participant = get(entry, "participant", "id", w)
-        trial = get(entry, "trial", "int", w)
+        trial = get(entry, "trial", "int", w, lo=0, hi=MAX_TRIAL)
         if (participant, trial) in seen:
             raise w.fail("trial", f"duplicate trial {trial} of participant {participant!r} "
                                   f"(first on line {seen[(participant, trial)]})")
         seen[(participant, trial)] = lineno
         table = get(entry, "table", "int", w)
         if table not in tables:
-            raise w.fail("table", f"table id {table} has no table in tables.json")
+            raise w.fail("table", f"table id {table} has no table in tables.json"[:200])
         placements = parse_placements(get(entry, "placements", "list", w), catalog, w)
         if len(placements) < min_objects:
             raise w.fail("placements", f"{len(placements)} objects, fewer than the minimum of {min_objects}")
@@ -229,9 +326,9 @@ def _load_arrangements(path: Path, catalog: Catalog, tables: dict[int, Table], m
     return out
 
 
-def _load_ratings(path: Path) -> list[Rating]:
+def _parse_ratings(lines, path: Path) -> list[Rating]:
     out = []
-    for lineno, entry in read_jsonl(path):
+    for lineno, entry in lines:
         w = Where(path, line=lineno)
         require_mapping(entry, w)
         vals = {}
@@ -245,5 +342,5 @@ def _load_ratings(path: Path) -> list[Rating]:
             if v is not None and v < 0:
                 raise w.fail(key, f"RMSD {v} is negative")
             vals[key] = v
-        out.append(Rating(get(entry, "participant", "id", w), get(entry, "trial", "int", w), **vals))
+        out.append(Rating(get(entry, "participant", "id", w), get(entry, "trial", "int", w, lo=0, hi=MAX_TRIAL), **vals))
     return out

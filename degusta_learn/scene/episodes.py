@@ -21,7 +21,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_jsonl, read_jsonl
 from degusta_learn.scene.dataset import Dataset
 from degusta_learn.scene.types import TASKS, Episode
-from degusta_learn.scene.validate import Where, get, require_mapping
+from degusta_learn.scene.validate import MAX_TRIAL, Where, get, require_mapping
 
 SPLITS = ("train", "val", "test", "all")
 SPLIT_FRACTIONS = {"train": 0.7, "val": 0.1, "test": 0.2}
@@ -94,9 +94,11 @@ def read_episodes(path: str | Path, ds: Dataset | None = None) -> list[Episode]:
         participant = get(entry, "participant", "id", w)
         context = get(entry, "context", "list", w)
         for c in context:
-            if isinstance(c, bool) or not isinstance(c, int):
-                raise w.fail("context", f"expected a list of trial numbers, got {context!r}")
-        target = get(entry, "target", "int", w)
+            if isinstance(c, bool) or not isinstance(c, int) or not 0 <= c <= MAX_TRIAL:
+                raise w.fail("context", f"expected a list of trial numbers (0..{MAX_TRIAL}), got {context!r}"[:300])
+        if len(set(context)) != len(context):
+            raise w.fail("context", f"a trial appears twice in {context!r}"[:300])
+        target = get(entry, "target", "int", w, lo=0, hi=MAX_TRIAL)
         if target in context:
             raise w.fail("context", f"the target trial {target} is also in the context")
         task = get(entry, "task", "str", w, optional=True, default="generalization")

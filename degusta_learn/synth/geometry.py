@@ -19,6 +19,7 @@ import numpy as np
 
 from degusta_learn.scene import TYPE_SIZE, Table
 
+_EPS = 1e-9  # smallest surface extent divided by (degenerate surfaces only)
 _PHI = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)  # footprint boundary samples
 # Interior + boundary samples of a unit disc, for overlap estimates: (17, 2)
 _DISC = np.concatenate([[[0.0, 0.0]], 0.55 * np.c_[np.cos(_PHI), np.sin(_PHI)],
@@ -56,7 +57,8 @@ def to_table(table: Table, uv: np.ndarray) -> np.ndarray:
 def to_relative(table: Table, xy: np.ndarray) -> np.ndarray:
     """Table image coordinates -> surface-relative (u, v); (..., 2) -> (..., 2)."""
     x0, y0, x1, y1 = bounds(table)
-    return (np.asarray(xy, dtype=float) - [x0, y0]) / [x1 - x0, y1 - y0]
+    # A degenerate surface (zero width or height; load_dataset rejects those) maps to u or v = 0, not inf/NaN.
+    return (np.asarray(xy, dtype=float) - [x0, y0]) / [max(x1 - x0, _EPS), max(y1 - y0, _EPS)]
 
 
 @functools.lru_cache(maxsize=64)

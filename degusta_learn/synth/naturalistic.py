@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from degusta_learn.scene.dataset import validate_dataset
 from degusta_learn.scene import Arrangement, Dataset, default_catalog, default_tables
 from degusta_learn.synth.ratings import simulate_rating
 from degusta_learn.synth.realize import MIN_OBJECTS, sample_arrangement, taste_weights
@@ -50,7 +51,8 @@ def naturalistic_with_styles(seed: int = 0, n_participants: int = N_PARTICIPANTS
     meta = {"name": "naturalistic", "synthetic": True, "generator": "degusta_learn.synth.naturalistic",
             "seed": seed, "description": DESCRIPTION, "min_objects": MIN_OBJECTS,
             "latent_styles": "latent_styles.json"}
-    return Dataset(catalog, tables, arrangements, ratings, meta), styles
+    # The generator keeps the validator's rules: what it returns always loads (never written otherwise).
+    return validate_dataset(Dataset(catalog, tables, arrangements, ratings, meta)), styles
 
 
 def naturalistic(seed: int = 0) -> Dataset:

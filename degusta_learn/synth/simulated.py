@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from degusta_learn.scene.dataset import validate_dataset
 from degusta_learn.scene import Arrangement, Catalog, Dataset, Episode, default_catalog, default_tables
 from degusta_learn.synth.realize import MIN_OBJECTS, sample_arrangement
 from degusta_learn.synth.style import Noise, Setting, Slot, Style
@@ -114,7 +115,9 @@ def simulated_with_styles(seed: int = 0) -> tuple[Dataset, list[Style], list[Epi
     meta = {"name": "simulated", "synthetic": True, "generator": "degusta_learn.synth.simulated", "seed": seed,
             "description": DESCRIPTION, "min_objects": MIN_OBJECTS, "latent_styles": "latent_styles.json",
             "episodes": "episodes.jsonl"}
-    return Dataset(catalog, tables, arrangements, None, meta), styles, simulated_episodes(styles)
+    # The generator keeps the validator's rules: what it returns always loads (never written otherwise).
+    ds = validate_dataset(Dataset(catalog, tables, arrangements, None, meta))
+    return ds, styles, simulated_episodes(styles)
 
 
 def simulated(seed: int = 0) -> Dataset:

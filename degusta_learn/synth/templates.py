@@ -6,7 +6,8 @@
   left; knife, spoon right; cup above right; optional salad fork and dessert spoon), `mirrored` [0.10]
   (the same, left-right mirrored), `minimal` [0.15] (plate, one utensil, cup; rarely a knife), `multi`
   [0.13] (2-4 place settings, facing each other or side by side), `row` [0.12] (3-6 objects in a line)
-  and `freeform` [0.20] (3-8 objects at person-specific random spots, with person-specific rotations);
+  and `freeform` [0.20] (3-8 objects at person-specific random spots, with person-specific rotations; a
+  spot is tried 60 times, and when fewer than 3 objects found room, cups are added where most room is);
 - an **anchor**: near edge [0.45], centre [0.25], a near corner [0.15], a side [0.10] or the far edge
   [0.05] of the surface, plus a personal offset ~ N(0, 0.04) per coordinate, clipped to [0.12, 0.88];
 - the **utensil angle**: 0 (pointing to the far side) [0.55], 45 or 315 [0.1 each], 90 [0.1], 270 or
@@ -40,6 +41,7 @@ COLOR_PRIOR = {"silver": 1.5, "white": 1.2, "black": 1.2, "blue": 1.2, "red": 1.
 MATERIAL_PRIOR = {"metal": 1.3, "ceramic": 1.2, "glass": 1.0, "plastic": 0.8, "wood": 0.8}
 TYPE_PRIOR = {"plate": 0.25, "cup": 0.2, "fork": 0.2, "knife": 0.15, "spoon": 0.2}
 PLATE_R = 0.085  # half a plate (catalog TYPE_SIZE)
+MIN_SLOTS = 3  # every style has at least realize.MIN_OBJECTS slots, so every trial can set that many
 
 Spec = tuple  # (type, dx, dy, rotation, p_include, setting)
 
@@ -148,6 +150,13 @@ def _freeform(rng, round_rot) -> list[Spec]:
         placed.append((c, r_k))
         rot = round_rot if t in ("plate", "cup") else float(rng.uniform(0, 360))
         specs.append((t, float(c[0]), float(c[1]), rot, 1.0 if k < 3 else rng.uniform(0.4, 1.0), 0))
+    while len(specs) < MIN_SLOTS:  # crowded out: add a cup (the smallest object) where there is most room
+        r_k = max(TYPE_SIZE["cup"]) / 2
+        spots = rng.uniform(-max(half, 0.2), max(half, 0.2), size=(64, 2))
+        room = np.array([min((np.hypot(*(c - q)) - rq for q, rq in placed), default=1.0) for c in spots])
+        c = spots[int(np.argmax(room))]
+        placed.append((c, r_k))
+        specs.append(("cup", float(c[0]), float(c[1]), round_rot, 1.0, 0))
     return specs
 
 
