@@ -103,7 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("name", choices=["naturalistic", "simulated"])
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing dataset folder that degusta generated (nothing else is ever deleted)")
     p.set_defaults(func=cmd_data_generate)
     p = data.add_parser("validate", help="check a dataset folder; exit 0 or name the file/line/field")
     p.add_argument("dir", type=Path)

@@ -2,6 +2,11 @@
 
 Usage:
     degusta evaluate --dataset data/naturalistic --predictions runs/copy_nearest/predictions.jsonl --out runs/eval
+
+Every record is checked against its episode first (scoring.check_records): a file holds one method, and
+a prediction whose participant or target disagrees with its episode (or whose target is a context trial)
+is refused with file, line and field. The three files are written as one set (degusta_learn.outdir): an
+error at any point leaves the previous report folder as it was.
 """
 
 from __future__ import annotations
@@ -10,12 +15,16 @@ from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.report import write_report
-from degusta_learn.evaluate.scoring import EpisodeRow, score_predictions
+from degusta_learn.evaluate.scoring import EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import summarize
 from degusta_learn.metrics import acceptability_curve
+from degusta_learn.outdir import OutputKind, check_target, write_folder
 from degusta_learn.scene import load_dataset, read_episodes, read_predictions
 
-__all__ = ["EpisodeRow", "evaluate_files", "score_predictions", "summarize"]
+__all__ = ["EVALUATION", "EpisodeRow", "evaluate_files", "score_predictions", "summarize"]
+
+EVALUATION = OutputKind("evaluation report", ("metrics.json", "per_episode.csv", "report.md"))
+"""What `degusta evaluate` writes into its --out folder (as one set)."""
 
 
 def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out: str | Path,
@@ -26,11 +35,13 @@ def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out:
     Several files may hold different methods; a method name found in two files (say, `mogma` from two
     backends) is labelled with each file's folder name, e.g. `mogma (hf_tiny_zeroshot)`.
     """
+    out = check_target(out, EVALUATION)  # refuse a bad --out before any work
     ds = load_dataset(dataset)
     ep_map = {e.id: e for e in read_episodes(episodes, ds)} if episodes else None
     loaded = [(Path(path), read_predictions(path, ds.catalog, ep_map)) for path in prediction_files]
+    notes = [note for path, preds in loaded for note in check_records(path, preds, ds, ep_map)]
     names = [m for _, preds in loaded for m in {p.method for p in preds}]
-    rows, seen_methods, notes = [], {}, []
+    rows, seen_methods = [], {}
     for path, preds in loaded:
         for p in preds:
             if names.count(p.method) > 1:
@@ -45,12 +56,17 @@ def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out:
                 raise DegustaError(f"{path}: {len(missing)} of {len(ep_map)} episodes have no prediction "
                                    f"(first: {missing[0]!r})")
         rows += score_predictions(ds, preds, ep_map)
+    for method in seen_methods:
+        mine = [r for r in rows if r.method == method]
+        if mine and all(r.failed for r in mine):
+            notes.append(f"Every prediction of {method} failed ({len(mine)} of {len(mine)}): its row is no result; "
+                         "see the `diagnostics` of its predictions for why.")
     sets = {m: {r.episode for r in rows if r.method == m} for m in seen_methods}
     if len({frozenset(s) for s in sets.values()}) > 1:
         notes.append("The methods were predicted on different episode sets: compare them with care "
                      "(`degusta compare` refuses this).")
     summary = summarize(rows, n_bootstrap=n_bootstrap, seed=seed)
-    out = Path(out)
-    write_report(out, "Evaluation report", ds.label, summary, rows, acceptability_curve(ds.ratings),
-                 ds.ratings is not None, notes)
+    curve = acceptability_curve(ds.ratings)
+    with write_folder(out, EVALUATION) as tmp:
+        write_report(tmp, "Evaluation report", ds.label, summary, rows, curve, ds.ratings is not None, notes)
     return out

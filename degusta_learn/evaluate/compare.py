@@ -5,20 +5,35 @@ Usage:
     degusta compare --config configs/compare_naturalistic.yaml --set "contexts=[4]" --set out=runs/cmp_k4
 
 A compare config lists methods; each is either an existing predictions file or a predict config that
-is run (once per context length, into `<out>/predictions/`; files already there are reused, so an
-interrupted comparison resumes). Every method must cover exactly the same episodes (refused otherwise,
-naming the mismatch). A method whose run fails is reported as failed; the rest of the report is written.
+is run (once per context length, into `<out>/predictions/`). Beside each file it runs, compare records a
+fingerprint (`NAME_kK.fingerprint.json`: hashes of the method's resolved config and the files it names,
+of the dataset's files, of the episodes, and of the predictions file itself). A file is reused only while
+its fingerprint matches, so an interrupted comparison resumes and a changed config or dataset is never
+scored from stale predictions: a local method is recomputed (logged); a method that calls a remote API
+(openai, anthropic, gemini backends) is refused up front, before anything runs, with a message saying
+to delete the file (answers already in the response cache are reused, not paid again). Method names are
+safe file names (letters, digits, `.`, `_`, `-`), so nothing is written outside `out`.
+Every method must cover exactly the same episodes, and every record must agree with its episode
+(scoring.check_records): otherwise the whole comparison is refused, naming the file, line and field. A method whose run fails, or whose every
+prediction failed, is reported as failed; the rest of the report is written. When every method failed,
+compare exits with an error and writes no report.
 The report lists the methods best first by mean set RMSD, degenerate methods last and marked
 (evaluate/summary.py, docs/metrics.md); the paired comparisons and the qualitative reference follow
 that order.
 
 Writes `<out>/report.md`, `report.html` (opens without a server), `metrics.json`, `per_episode.csv`,
-`plots/*.png` and `qualitative/*.png`.
+`plots/*.png` and `qualitative/*.png` as one set (degusta_learn.outdir): a failure leaves the previous
+report as it was, and `predictions/` is carried over.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import itertools
+import json
+import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,9 +41,11 @@ import numpy as np
 
 from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
-from degusta_learn.evaluate.scoring import EpisodeRow, score_predictions
+from degusta_learn.evaluate.scoring import EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import rank_methods, summarize
+from degusta_learn.fileio import atomic_write_json
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
+from degusta_learn.outdir import OutputKind, check_target, write_folder
 from degusta_learn.scene import (
     CONTEXT_LENGTHS, Dataset, Episode, Prediction, load_dataset, make_episodes, read_episodes, read_predictions,
     write_predictions,
@@ -37,6 +54,21 @@ from degusta_learn.scene import (
 
 class EpisodeSetMismatch(DegustaError):
     """A method's predictions cover other episodes than the comparison's: the whole comparison is refused."""
+
+
+class InconsistentRecords(DegustaError):
+    """A predictions file contradicts its episodes (scoring.check_records): the whole comparison is refused."""
+
+
+COMPARISON = OutputKind("comparison report", ("report.md", "report.html", "metrics.json", "per_episode.csv",
+                                              "plots", "qualitative", "predictions"))
+"""What `degusta compare` writes into `out` (as one set; `predictions/` is carried over)."""
+
+METHOD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,79}")
+"""A method name is also a file name under `<out>/predictions/`: a safe slug."""
+
+REMOTE_BACKENDS = ("openai", "anthropic", "gemini")
+"""Backends whose answers may cost money: their stale predictions are refused, never silently recomputed."""
 
 
 @dataclass
@@ -53,6 +85,10 @@ class MethodEntry:
     """Overrides for `config` (like --set key=value)."""
 
     def __post_init__(self):
+        if not isinstance(self.name, str) or not METHOD_NAME.fullmatch(self.name):
+            raise DegustaError(f"methods: name {self.name!r}: expected a safe name (letters, digits, '.', '_', '-'; "
+                               "starting with a letter or digit; at most 80 characters): it names files under "
+                               "<out>/predictions/")
         if (self.predictions is None) == (self.config is None):
             raise DegustaError(f"methods entry {self.name!r}: give exactly one of 'predictions' or 'config'")
 
@@ -104,27 +140,179 @@ def comparison_episodes(cfg: CompareConfig, ds: Dataset) -> list[Episode]:
     return [e for k in cfg.contexts for e in make_episodes(ds, k, cfg.split, cfg.seed)]
 
 
-def _run_config(entry: MethodEntry, cfg: CompareConfig, pred_dir: Path, log) -> list[Path]:
-    from degusta_learn.methods import run_predict
-
+def _runs(entry: MethodEntry, cfg: CompareConfig, pred_dir: Path) -> list[tuple[int | None, list[str], Path]]:
+    """(context length, predict overrides, predictions file) of each run of a config method."""
     runs = [(None, [f"episodes={cfg.episodes}"])] if cfg.episodes else \
         [(k, ["episodes=null", f"context={k}", f"split={cfg.split}"]) for k in cfg.contexts]
-    paths = []
+    out = []
     for k, keys in runs:
-        out = pred_dir / (f"{entry.name}_k{k}.jsonl" if k is not None else f"{entry.name}_episodes.jsonl")
-        if out.exists():
+        path = pred_dir / (f"{entry.name}_k{k}.jsonl" if k is not None else f"{entry.name}_episodes.jsonl")
+        out.append((k, [*entry.set, f"dataset={cfg.dataset}", f"seed={cfg.seed}", *keys, f"out={path}"], path))
+    return out
+
+
+def fingerprint_path(predictions: Path) -> Path:
+    return predictions.with_name(predictions.stem + ".fingerprint.json")
+
+
+# Keys that change how a run goes, not what it answers: a change never makes predictions stale.
+_RUN_CONTROL = {"out", "dataset", "episodes", "cache", "dry_run", "concurrency", "budget_usd", "max_retries",
+                "backoff", "backoff_max", "prices", "est_output_tokens", "timeout", "api_key_env"}
+
+
+def _sha(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _file_sha(path: Path) -> str | None:
+    h = hashlib.sha256()
+    try:
+        with path.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def _stat_tree(path: Path, limit: int = 5000) -> list:
+    """(relative path, size, mtime) of a file or of the files under a folder: cheap identity of a checkpoint."""
+    if path.is_file():
+        st = path.stat()
+        return [[path.name, st.st_size, st.st_mtime_ns]]
+    out = []
+    for root, dirs, files in os.walk(path):
+        dirs.sort()
+        for name in sorted(files):
+            full = Path(root) / name
+            try:
+                st = full.stat()
+            except OSError:
+                continue
+            out.append([str(full.relative_to(path)), st.st_size, st.st_mtime_ns])
+            if len(out) >= limit:
+                return out
+    return out
+
+
+def _resolved(value, files: dict, key: str = ""):
+    """The config without run-control keys; every string naming an existing path adds its file identity."""
+    if isinstance(value, dict):
+        return {k: _resolved(v, files, f"{key}.{k}" if key else str(k)) for k, v in value.items()
+                if str(k) not in _RUN_CONTROL}
+    if isinstance(value, (list, tuple)):
+        return [_resolved(v, files, key) for v in value]
+    if isinstance(value, str) and value and len(value) < 4096:
+        try:
+            path = Path(value)
+            if path.exists():
+                files[key] = _stat_tree(path)
+        except (OSError, ValueError):
+            pass
+    return value
+
+
+def dataset_identity(ds: Dataset) -> str:
+    """Hash of the dataset folder's files (bytes of the top-level files, size and mtime of deeper ones)."""
+    if ds.root is None:
+        return _sha([e.to_json() for e in ds.arrangements])
+    parts = []
+    for p in sorted(Path(ds.root).iterdir()):
+        if p.is_file():
+            parts.append([p.name, _file_sha(p)])
+        elif p.is_dir():
+            parts.append([p.name, _stat_tree(p)])
+    return _sha(parts)
+
+
+def run_fingerprint(entry: MethodEntry, overrides: list[str], ds_id: str, episodes: list[Episode]) -> tuple[dict, bool]:
+    """(fingerprint parts, whether the method may call a paid remote API) of one run of a config method."""
+    from degusta_learn.methods import build_config, get_method
+
+    _, mcfg = build_config(entry.config, overrides, "method", get_method)
+    files: dict = {}
+    config = _resolved(dataclasses.asdict(mcfg), files)
+    backend = getattr(mcfg, "backend", None)
+    remote = getattr(backend, "name", None) in REMOTE_BACKENDS
+    return {"config": _sha(config), "files": _sha(files), "dataset": ds_id,
+            "episodes": _sha([e.to_json() for e in episodes])}, remote
+
+
+def stale_reason(predictions: Path, parts: dict) -> str | None:
+    """Why an existing predictions file may not be reused (None: reuse it)."""
+    record_path = fingerprint_path(predictions)
+    try:
+        record = json.loads(record_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return f"there is no {record_path.name} saying what produced it"
+    except (OSError, ValueError, RecursionError):
+        return f"{record_path.name} is unreadable"
+    if not isinstance(record, dict) or not isinstance(record.get("parts"), dict):
+        return f"{record_path.name} is malformed"
+    changed = [k for k in parts if record["parts"].get(k) != parts[k]]
+    if changed:
+        what = {"config": "config", "files": "version of a file its config names (e.g. a checkpoint)",
+                "dataset": "dataset", "episodes": "episode set"}
+        return "it was produced with another " + " and ".join(what.get(k, k) for k in changed)
+    if record.get("predictions_sha256") != _file_sha(predictions):
+        return "it was changed after it was produced"
+    return None
+
+
+def _episodes_of_run(cfg: CompareConfig, ds: Dataset, episodes: list[Episode], k: int | None) -> list[Episode]:
+    return episodes if k is None else make_episodes(ds, k, cfg.split, cfg.seed)
+
+
+def check_stale_paid(cfg: CompareConfig, ds: Dataset, episodes: list[Episode], pred_dir: Path, ds_id: str) -> None:
+    """Before anything runs: refuse stale predictions of a paid method (recomputing would spend money)."""
+    for entry in cfg.methods:
+        if entry.config is None:
+            continue
+        for k, overrides, path in _runs(entry, cfg, pred_dir):
+            if not path.exists():
+                continue
+            try:
+                parts, remote = run_fingerprint(entry, overrides, ds_id, _episodes_of_run(cfg, ds, episodes, k))
+            except DegustaError:
+                continue  # reported as that method's failure when it runs
+            why = stale_reason(path, parts) if remote else None
+            if why:
+                raise DegustaError(
+                    f"{path}: not reused because {why}; method {entry.name!r} calls a paid API, so compare does not "
+                    "recompute it silently: delete that file to recompute (answers already in the response cache "
+                    "are reused, not paid again), or restore the config and dataset that produced it")
+
+
+def _run_config(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, episodes: list[Episode], pred_dir: Path,
+                ds_id: str, log) -> list[Path]:
+    from degusta_learn.methods import run_predict
+
+    paths = []
+    for k, overrides, out in _runs(entry, cfg, pred_dir):
+        parts, remote = run_fingerprint(entry, overrides, ds_id, _episodes_of_run(cfg, ds, episodes, k))
+        why = stale_reason(out, parts) if out.exists() else "missing"
+        if why is None:
             log(f"[compare] {entry.name}: reusing {out}")
         else:
+            if why != "missing":
+                if remote:  # check_stale_paid refused this up front; the file changed since
+                    raise DegustaError(f"{out}: not reused because {why}; delete it to recompute "
+                                       "(cached answers are not paid again)")
+                log(f"[compare] {entry.name}: {out} is stale ({why}): recomputing")
             log(f"[compare] {entry.name}: predicting" + (f" (context {k})" if k is not None else ""))
-            run_predict(entry.config, [*entry.set, f"dataset={cfg.dataset}", f"seed={cfg.seed}", *keys, f"out={out}"])
+            run_predict(entry.config, overrides)
+            atomic_write_json(fingerprint_path(out), {"parts": parts, "predictions_sha256": _file_sha(out),
+                                                      "method": entry.name, "context": k})
         paths.append(out)
     return paths
 
 
-def _collect(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, ep_map: dict[str, Episode],
-             pred_dir: Path, log) -> list[Prediction]:
-    paths = [Path(entry.predictions)] if entry.predictions else _run_config(entry, cfg, pred_dir, log)
-    preds = [p for path in paths for p in read_predictions(path, ds.catalog)]
+def _collect(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, episodes: list[Episode],
+             ep_map: dict[str, Episode], pred_dir: Path, ds_id: str, log) -> list[Prediction]:
+    paths = [Path(entry.predictions)] if entry.predictions else \
+        _run_config(entry, cfg, ds, episodes, pred_dir, ds_id, log)
+    files = [(path, read_predictions(path, ds.catalog)) for path in paths]
+    preds = [p for _, found in files for p in found]
     have, want = {p.episode for p in preds}, set(ep_map)
     if have != want:
         missing, extra = sorted(want - have), sorted(have - want)
@@ -132,9 +320,35 @@ def _collect(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, ep_map: dict[s
             f"method {entry.name!r} was predicted on a different episode set: "
             f"{len(missing)} episodes missing (first: {missing[:1]}), {len(extra)} not in this comparison "
             f"(first: {extra[:1]}); compare methods on the same episodes")
+    if len(preds) != len(have):
+        raise DegustaError(f"method {entry.name!r}: some episodes are predicted twice across its files")
+    for path, found in files:
+        try:
+            notes = check_records(path, found, ds, ep_map)
+        except DegustaError as e:
+            raise InconsistentRecords(f"method {entry.name!r}: {e}") from None
+        for note in notes:
+            log(f"[compare] {entry.name}: {note}")
+    if all(p.failed or not p.placements for p in preds):
+        raise DegustaError(f"every one of its {len(preds)} predictions failed (see the diagnostics in "
+                           f"{', '.join(str(p) for p in paths)})")
     for p in preds:
         p.method = entry.name
     return sorted(preds, key=lambda p: p.episode)
+
+
+def _output_names(cfg: CompareConfig, pred_dir: Path) -> None:
+    """Refuse two methods whose files under predictions/ would have the same name."""
+    owner: dict[str, str] = {}
+    for entry in cfg.methods:
+        names = [f"{entry.name}.jsonl"]
+        if entry.config is not None:
+            for _, _, path in _runs(entry, cfg, pred_dir):
+                names += [path.name, fingerprint_path(path).name]
+        for name in names:
+            if owner.setdefault(name, entry.name) != entry.name:
+                raise DegustaError(f"methods: {owner[name]!r} and {entry.name!r} would both write "
+                                   f"predictions/{name}; rename one of them")
 
 
 PAIRED_METRICS = ("set_rmsd", "object_accuracy", "rmsd")
@@ -164,27 +378,35 @@ def compare(cfg: CompareConfig, log=print) -> Path:
     """Run/collect every method, score them on the same episodes and write the report folder."""
     from degusta_learn.evaluate.compare_report import write_compare_report
 
+    out = check_target(cfg.out, COMPARISON)  # a bad `out` is refused before anything runs
     ds = load_dataset(cfg.dataset)
     episodes = comparison_episodes(cfg, ds)
     ep_map = {e.id: e for e in episodes}
-    out = Path(cfg.out)
     pred_dir = out / "predictions"
+    _output_names(cfg, pred_dir)
+    ds_id = dataset_identity(ds)
+    check_stale_paid(cfg, ds, episodes, pred_dir, ds_id)
     predictions, failures = {}, {}
     for entry in cfg.methods:
         try:
-            predictions[entry.name] = _collect(entry, cfg, ds, ep_map, pred_dir, log)
-        except EpisodeSetMismatch:
+            predictions[entry.name] = _collect(entry, cfg, ds, episodes, ep_map, pred_dir, ds_id, log)
+        except (EpisodeSetMismatch, InconsistentRecords):
             raise
         except DegustaError as e:
             log(f"[compare] {entry.name}: FAILED: {e}")
             failures[entry.name] = str(e)
+    if not predictions:
+        reasons = "; ".join(f"{m}: {' '.join(msg.split())}" for m, msg in failures.items())
+        raise DegustaError(f"every method failed, so no report was written ({reasons})")
     rows = [r for preds in predictions.values() for r in score_predictions(ds, preds, ep_map)]
-    for name, preds in predictions.items():
-        write_predictions(pred_dir / f"{name}.jsonl", preds)
     summary = summarize(rows, cfg.n_bootstrap, cfg.seed)
     methods = rank_methods(summary)  # best first; summarize already returns this order
     paired = paired_table(rows, methods, cfg.n_bootstrap, cfg.seed)
-    write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, predictions,
-                         acceptability_curve(ds.ratings), log)
+    curve = acceptability_curve(ds.ratings)
+    with write_folder(out, COMPARISON, keep=("predictions",)) as tmp:
+        for name, preds in predictions.items():
+            write_predictions(tmp / "predictions" / f"{name}.jsonl", preds)
+        write_compare_report(dataclasses.replace(cfg, out=str(tmp)), ds, episodes, rows, summary, paired, failures,
+                             predictions, curve, log)
     log(f"[compare] report: {out / 'report.md'} (HTML: {out / 'report.html'})")
     return out

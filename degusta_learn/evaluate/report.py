@@ -106,7 +106,7 @@ def write_per_episode_csv(path: Path, rows: list[EpisodeRow]) -> None:
 
 def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, dict], rows: list[EpisodeRow],
                  curve: dict[float, float], from_ratings: bool, notes: list[str] | None = None) -> None:
-    """Write metrics.json, per_episode.csv and report.md into `out` (each atomically)."""
+    """Write metrics.json, per_episode.csv and report.md into `out` (a staging folder: see degusta_learn.outdir)."""
     out.mkdir(parents=True, exist_ok=True)
     summary = ranked(summary)
     atomic_write_json(out / "metrics.json", summary)

@@ -7,14 +7,19 @@ and fine-tuned methods are compared on equal terms.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import read_jsonl
 from degusta_learn.metrics import score_many
 from degusta_learn.scene import Dataset, Episode, Prediction
 
 _CONTEXT_IN_ID = re.compile(r"/k(\d+)$")
+EPISODE_ID = re.compile(r"(?P<participant>.+)/t(?P<target>\d{1,9})/k(?P<context>\d{1,9})")
+"""The ids `make_episodes` gives: participant/tTARGET/kCONTEXT."""
 
 CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", "failed", "n_gt", "n_pred",
                "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd", "tokens",
@@ -47,13 +52,103 @@ class EpisodeRow:
         return asdict(self)
 
 
+def usage_number(diagnostics, key: str) -> float | None:
+    """diagnostics["usage"][key] as a finite number >= 0, or None (missing or malformed: never an error)."""
+    usage = diagnostics.get("usage") if isinstance(diagnostics, dict) else None
+    value = usage.get(key) if isinstance(usage, dict) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        value = float(value)
+    except (OverflowError, ValueError):
+        return None
+    return value if math.isfinite(value) and value >= 0 else None
+
+
+def _malformed_usage(diagnostics) -> bool:
+    usage = diagnostics.get("usage") if isinstance(diagnostics, dict) else None
+    if usage is None:
+        return False
+    if not isinstance(usage, dict):
+        return True
+    return any(usage.get(k) is not None and usage_number(diagnostics, k) is None for k in ("tokens", "cost_usd"))
+
+
+def check_records(path: str | Path, predictions: list[Prediction], ds: Dataset,
+                  episodes: dict[str, Episode] | None = None, one_method: bool = True) -> list[str]:
+    """Refuse predictions that contradict their episode; returns notes for the report (never silent).
+
+    Every record must agree with its episode: with `episodes`, the episode's participant and target;
+    without, the participant and target its id names (ids of `make_episodes`: participant/tT/kK; any
+    other id needs the episode set). The target must be a trial of the participant in the dataset and
+    not one of the episode's context trials. With `one_method`, a file holds one method: a second name
+    (a misspelt line) is refused. Errors name file, line and field; malformed `diagnostics.usage` is
+    ignored (counted in a note), never an error.
+    """
+    path = Path(path)
+    try:
+        lines = [n for n, _ in read_jsonl(path)]
+    except DegustaError:
+        lines = []
+    if len(lines) != len(predictions):  # the file changed under us: fall back to record numbers
+        lines = list(range(1, len(predictions) + 1))
+    first_method: tuple[str, int] | None = None
+    bad_usage = 0
+    for lineno, pred in zip(lines, predictions):
+        where = f"{path}:{lineno}"
+        if one_method:
+            if first_method is None:
+                first_method = (pred.method, lineno)
+            elif pred.method != first_method[0]:
+                raise DegustaError(
+                    f"{where}: field 'method': {pred.method!r} differs from {first_method[0]!r} on line "
+                    f"{first_method[1]}; a predictions file holds one method (fix the misspelt name, or split "
+                    "the file and pass both)")
+        ep = episodes.get(pred.episode) if episodes is not None else None
+        if ep is not None:
+            participant, target, context = ep.participant, ep.target, ep.context
+            source = f"the episode set says episode {pred.episode!r} is"
+        else:
+            m = EPISODE_ID.fullmatch(pred.episode)
+            if m is None:
+                raise DegustaError(
+                    f"{where}: field 'episode': {pred.episode!r} is not an id of the form participant/tT/kK, so "
+                    "its participant and target cannot be checked; pass the episode set with --episodes")
+            participant, target, context = m.group("participant"), int(m.group("target")), None
+            source = f"episode id {pred.episode!r} names"
+        if pred.participant != participant:
+            raise DegustaError(f"{where}: field 'participant': {source} participant {participant!r}, "
+                               f"but the record says {pred.participant!r}")
+        if pred.target != target:
+            raise DegustaError(f"{where}: field 'target': {source} target trial {target}, "
+                               f"but the record says {pred.target}")
+        claimed = pred.diagnostics.get("context") if isinstance(pred.diagnostics, dict) else None
+        for ctx in (context, claimed if isinstance(claimed, list) else None):
+            if ctx is not None and pred.target in ctx:
+                raise DegustaError(f"{where}: field 'target': trial {pred.target} is one of the episode's "
+                                   f"context trials {list(ctx)}; a method must not be scored on what it was shown")
+        if (pred.participant, pred.target) not in ds._by_key:
+            raise DegustaError(f"{where}: field 'target': participant {pred.participant!r} has no trial "
+                               f"{pred.target} in the dataset")
+        if ep is None:
+            k = int(m.group("context"))
+            n_trials = len(ds.trials_of(pred.participant))
+            if k >= n_trials:
+                raise DegustaError(f"{where}: field 'episode': {pred.episode!r} asks for {k} context trials, but "
+                                   f"participant {pred.participant!r} has only {n_trials} trials")
+        bad_usage += _malformed_usage(pred.diagnostics)
+    if bad_usage:
+        return [f"{path}: {bad_usage} record(s) have a malformed `diagnostics.usage` (tokens/cost ignored there)."]
+    return []
+
+
 def score_predictions(ds: Dataset, predictions: list[Prediction],
                       episodes: dict[str, Episode] | None = None) -> list[EpisodeRow]:
     """Score each prediction against the dataset's target arrangement.
 
     Args:
         ds: the dataset holding the ground truth.
-        predictions: one method's (or several methods') predictions.
+        predictions: one method's (or several methods') predictions (check them with `check_records`).
         episodes: the episode set, if known; gives context length and task. Without it the context
             length is read from ids of the form ``.../kN`` and the task is "unknown".
     """
@@ -71,11 +166,11 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
         else:
             m = _CONTEXT_IN_ID.search(pred.episode)
             context, task = (int(m.group(1)) if m else None), "unknown"
-        usage = pred.diagnostics.get("usage") or {}
         rows.append(EpisodeRow(
             method=pred.method, episode=pred.episode, participant=pred.participant, target=pred.target,
             context=context, task=task, failed=pred.failed or not pred.placements, n_gt=score.n_gt,
             n_pred=score.n_pred, n_matched=score.n_matched, object_accuracy=score.object_accuracy,
             rmsd=score.rmsd, rmsd_unregistered=score.rmsd_unregistered, count_error=score.count_error,
-            set_rmsd=score.set_rmsd, tokens=usage.get("tokens"), cost_usd=usage.get("cost_usd")))
+            set_rmsd=score.set_rmsd, tokens=usage_number(pred.diagnostics, "tokens"),
+            cost_usd=usage_number(pred.diagnostics, "cost_usd")))
     return rows

@@ -14,8 +14,10 @@ and target trial are given (the same episode `degusta predict` sees):
     objects.json         the catalog as JSON text, OaL (louma/logma)
     order.txt            one placement-order line per context image (when the context is not empty)
 
-Everything is rendered in memory first and then written file by file atomically, so a bad input
-leaves no output behind.
+Everything is rendered in memory first and then written as one folder (degusta_learn.outdir): the
+files land in a temporary folder beside `out` that is swapped in whole, so a bad input or a failure while
+writing leaves `out` as it was (never a mix of old and new files). A folder that also holds files
+`render` does not write keeps them; the episode files of a previous render are replaced.
 """
 
 from __future__ import annotations
@@ -26,10 +28,15 @@ from pathlib import Path
 from PIL import Image
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_bytes, atomic_write_text
+from degusta_learn.fileio import atomic_write_bytes
+from degusta_learn.outdir import OutputKind, write_folder
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import Renderer, method_liftings, oal_text, order_text
 from degusta_learn.scene import Dataset, load_dataset, make_episodes
+
+
+EPISODE_FILES = OutputKind("rendered episode", ("final_state_*.png", "initial_state_*.png", "objects_*.png",
+                                                "objects.json", "order.txt"))
 
 
 def png_bytes(image: Image.Image) -> bytes:
@@ -75,19 +82,23 @@ def render_episode(dataset: Dataset | str | Path, participant: str, target: int,
     if lines:
         texts["order.txt"] = "\n".join(lines) + "\n"
     out = Path(out)
-    written = []
-    for name, image in images.items():
-        atomic_write_bytes(out / name, png_bytes(image))
-        written.append(out / name)
-    for name, content in texts.items():
-        atomic_write_text(out / name, content)
-        written.append(out / name)
-    return written
+    files = {name: png_bytes(image) for name, image in images.items()}
+    files.update({name: content.encode("utf-8") for name, content in texts.items()})
+    with write_folder(out, EPISODE_FILES) as tmp:
+        for name, data in files.items():
+            (tmp / name).write_bytes(data)
+    return [out / name for name in files]
 
 
 def render_catalog(dataset: Dataset | str | Path, out: str | Path, size: int = 448) -> Path:
     """Write the contact sheet of the whole catalog (every type's GoMO sheet, `size` px each)."""
     ds = _dataset(dataset)
     out = Path(out)
-    atomic_write_bytes(out, png_bytes(Renderer.for_dataset(ds, size).catalog_sheet()))
+    if out.is_dir():
+        raise DegustaError(f"{out}: is a folder; give the PNG file to write, e.g. {out / 'catalog.png'}")
+    data = png_bytes(Renderer.for_dataset(ds, size).catalog_sheet())
+    try:
+        atomic_write_bytes(out, data)
+    except OSError as e:
+        raise DegustaError(f"{out}: cannot write ({e.strerror or e})") from None
     return out

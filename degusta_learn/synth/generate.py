@@ -7,45 +7,59 @@ Usage:
     from degusta_learn.synth import generate_dataset
     generate_dataset("naturalistic", "data/naturalistic", seed=0)
 
-The folder is built in a temporary sibling folder and renamed into place, so a reader never sees a half
-written dataset and a failed run leaves nothing behind. The same seed gives byte-identical files.
+The folder is built in a temporary sibling folder and swapped into place (degusta_learn.outdir), so a
+reader never sees a half written dataset and a failed or killed run leaves the previous folder intact
+(a killed run's hidden temp folder is removed by the next run). `--overwrite` replaces only a dataset
+this tool generated (nothing foreign inside). The same seed gives byte-identical files.
 Files: catalog.json, tables.json, arrangements.jsonl, ratings.jsonl (naturalistic), meta.json,
 latent_styles.json, and episodes.jsonl (simulated: its 72 experiments).
 """
 
 from __future__ import annotations
 
-import contextlib
-import shutil
-import tempfile
+import json
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.outdir import OutputKind, write_folder
 from degusta_learn.scene import save_dataset, write_episodes
 from degusta_learn.synth.naturalistic import naturalistic_with_styles
 from degusta_learn.synth.simulated import simulated_with_styles
 from degusta_learn.synth.style import STYLES_FILE, write_styles
 
 GENERATORS = ("naturalistic", "simulated")
+GENERATOR_SIGNATURE = "degusta_learn.synth."
+"""meta.json "generator" of every dataset this tool writes: `--overwrite` replaces only such a folder."""
+
+DATASET_FILES = ("catalog.json", "tables.json", "arrangements.jsonl", "ratings.jsonl", "meta.json", STYLES_FILE,
+                 "episodes.jsonl")
+
+
+def _generated_by_us(folder: Path) -> bool:
+    try:
+        meta = json.loads((folder / "meta.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return False
+    generator = meta.get("generator") if isinstance(meta, dict) else None
+    return isinstance(generator, str) and generator.startswith(GENERATOR_SIGNATURE)
+
+
+DATASET = OutputKind("dataset", DATASET_FILES, check=_generated_by_us, merge=False)
+"""A generated dataset folder: only its own files, and a meta.json naming a degusta generator."""
 
 
 def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool = False) -> Path:
     """Write the `name` dataset ("naturalistic" or "simulated") to folder `out`; returns `out`.
 
     Raises DegustaError for an unknown name, or when `out` exists and is not an empty folder (unless
-    `overwrite`, which replaces it only once the new folder is complete).
+    `overwrite`, which replaces it only once the new folder is complete, and only when it is a dataset
+    this tool generated: its own files and nothing else, meta.json naming a degusta generator).
+    Leftovers of a killed run (hidden `.NAME.*.tmp` folders beside `out`) are removed first.
     """
     if name not in GENERATORS:
         raise DegustaError(f"unknown dataset {name!r} (expected one of {', '.join(GENERATORS)})")
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise DegustaError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise DegustaError(f"{out}: folder exists and is not empty (pass --overwrite to replace it)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    tmp.chmod(0o755)  # mkdtemp makes it private; a dataset folder is an ordinary folder
-    try:
+    with write_folder(out, DATASET, replace=overwrite) as tmp:
         if name == "naturalistic":
             ds, styles = naturalistic_with_styles(seed)
         else:
@@ -53,24 +67,4 @@ def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool 
             write_episodes(tmp / "episodes.jsonl", episodes)
         save_dataset(ds, tmp)
         write_styles(tmp / STYLES_FILE, styles)
-        _replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
-
-
-def _replace(tmp: Path, out: Path) -> None:
-    """Move the finished folder `tmp` to `out`, replacing an existing `out` only after the move succeeds."""
-    if not out.exists():
-        tmp.rename(out)
-        return
-    old = out.with_name(f".{out.name}.old-{tmp.name}")
-    out.rename(old)
-    try:
-        tmp.rename(out)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            old.rename(out)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
