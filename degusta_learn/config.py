@@ -5,6 +5,11 @@ docstring-like comment; nested sections are nested dataclasses. `load_config` ch
 type and raises `DegustaError` with messages such as
 ``configs/x.yaml: backend.n: expected int, got 'five'`` or ``configs/x.yaml: unknown key 'lr'``.
 
+Hostile or oversized input is refused with one line, never loaded: YAML whose aliases expand past
+`MAX_YAML_NODES` values (a "billion laughs" bomb) or refer to themselves, files over `MAX_CONFIG_BYTES`,
+non-UTF-8, too-deep nesting, non-finite floats, and numbers outside the range a field declares with
+`bounded(default, lo, hi)` (e.g. ``x.yaml: model.image_size: expected a value from 16 to 4,096, got 60000``).
+
 Example:
     cfg = load_config(MyConfig, "configs/learned_cpu.yaml", overrides=["trainer.max_epochs=3"])
 """
@@ -12,6 +17,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -24,23 +30,99 @@ from degusta_learn.errors import DegustaError
 T = TypeVar("T")
 
 
+MAX_CONFIG_BYTES = 4 * 1024 * 1024
+"""Largest config file read (configs are small text files; a bigger one is refused, not loaded)."""
+MAX_YAML_NODES = 100_000
+"""Most YAML nodes a config may expand to, aliases counted at their expanded size ("billion laughs")."""
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """A SafeLoader whose documents are checked for alias expansion and cycles before they are built."""
+
+
+class _YamlTooLarge(Exception):
+    pass
+
+
+def _expanded_size(node: yaml.Node, memo: dict[int, int], active: set[int], limit: int) -> int:
+    """Nodes of `node` with every alias expanded; raises _YamlTooLarge past `limit` or on a cycle."""
+    key = id(node)
+    if key in memo:
+        return memo[key]
+    if key in active:
+        raise _YamlTooLarge("an alias refers to a node that contains it (a recursive structure)")
+    active.add(key)
+    if isinstance(node, yaml.SequenceNode):
+        children = list(node.value)
+    elif isinstance(node, yaml.MappingNode):
+        children = [part for pair in node.value for part in pair]
+    else:
+        children = []
+    size = 1
+    for child in children:
+        size += _expanded_size(child, memo, active, limit)
+        if size > limit:
+            raise _YamlTooLarge(f"aliases expand it to more than {limit:,} values (an alias bomb?); "
+                                "write the values out instead of repeating anchors")
+    active.discard(key)
+    memo[key] = size
+    return size
+
+
+def _safe_load(text: str, limit: int = MAX_YAML_NODES) -> Any:
+    """yaml.safe_load with alias expansion bounded by `limit` nodes and recursive aliases refused.
+
+    Raises yaml.YAMLError (syntax), _YamlTooLarge, RecursionError (nesting) or ValueError (e.g. an integer
+    of more digits than Python converts)."""
+    loader = _BoundedLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _expanded_size(node, {}, set(), limit)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; a missing file, a syntax error or a non-mapping raises DegustaError."""
+    """Read a YAML mapping; a missing/unreadable/oversized file, a syntax error, an alias bomb or a
+    non-mapping raises DegustaError with a one-line message naming the file."""
     path = Path(path)
     try:
+        if path.is_dir():
+            raise DegustaError(f"{path}: is a folder, expected a YAML config file")
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise DegustaError(f"{path}: {size:,} bytes is too large for a config file "
+                               f"(at most {MAX_CONFIG_BYTES:,})")
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise DegustaError(f"{path}: config file not found") from None
+    except UnicodeDecodeError as e:
+        raise DegustaError(f"{path}: not UTF-8 text (byte {e.start}); expected a YAML config file") from None
+    except OSError as e:
+        raise DegustaError(f"{path}: cannot read the config file ({e.strerror or e})") from None
     try:
-        data = yaml.safe_load(text)
+        data = _safe_load(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f":{mark.line + 1}" if mark is not None else ""
-        raise DegustaError(f"{path}{where}: invalid YAML ({getattr(e, 'problem', e)})") from None
+        problem = " ".join(str(getattr(e, "problem", None) or e).split())
+        raise DegustaError(f"{path}{where}: invalid YAML ({problem})") from None
+    except _YamlTooLarge as e:
+        raise DegustaError(f"{path}: refused: {e}") from None
+    except RecursionError:
+        raise DegustaError(f"{path}: refused: the YAML is nested too deeply") from None
+    except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
+        raise DegustaError(f"{path}: invalid YAML value ({' '.join(str(e).split())[:120]})") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise DegustaError(f"{path}: expected a mapping of keys at the top level, got {type(data).__name__}")
+    bad = [k for k in data if not isinstance(k, str)]
+    if bad:
+        raise DegustaError(f"{path}: keys must be names, got {_show(bad[0])}")
     return data
 
 
@@ -49,12 +131,14 @@ def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[s
     out = _deepcopy(data)
     for item in overrides or []:
         if "=" not in item:
-            raise DegustaError(f"--set {item!r}: expected key=value")
+            raise DegustaError(f"--set {_show(item)}: expected key=value")
         key, raw = item.split("=", 1)
         try:
-            value = yaml.safe_load(raw) if raw != "" else ""
+            value = _safe_load(raw) if raw != "" else ""
         except yaml.YAMLError:
             value = raw
+        except (_YamlTooLarge, RecursionError, ValueError, OverflowError) as e:
+            raise DegustaError(f"--set {key}: refused value ({' '.join(str(e).split())[:120] or 'too deep'})") from None
         node = out
         parts = key.strip().split(".")
         for part in parts[:-1]:
@@ -68,15 +152,46 @@ def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[s
     return out
 
 
+def bounded(default: Any = dataclasses.MISSING, lo: float | None = None, hi: float | None = None, *,
+            special: tuple = (), factory: Any = None) -> Any:
+    """A dataclass field whose number (or each number of its list) must lie in [lo, hi] or be in `special`.
+
+    `from_dict` checks it and names the key, so a config cannot ask for a 60000-px image or a billion-row
+    batch. Example: `image_size: int = bounded(448, 16, 4096)`; `max_steps: int = bounded(-1, 1, 10**9, special=(-1,))`;
+    lists: `channels: list[int] = bounded(lo=1, hi=4096, factory=lambda: [32, 64])`.
+    """
+    meta = {"bounds": (lo, hi, tuple(special))}
+    if factory is not None:
+        return dataclasses.field(default_factory=factory, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _check_bounds(value: Any, bounds: tuple, where: str, key: str) -> None:
+    lo, hi, special = bounds
+    items = value if isinstance(value, (list, tuple)) else [value]
+    for v in items:
+        if v is None or isinstance(v, bool) or not isinstance(v, (int, float)) or v in special:
+            continue
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            if lo is not None and hi is not None:
+                want = f"a value from {lo:,} to {hi:,}"
+            else:
+                want = f"at least {lo:,}" if lo is not None else f"at most {hi:,}"
+            if special:
+                want += " (or " + " / ".join(repr(x) for x in special) + ")"
+            raise DegustaError(f"{where}: {key}: expected {want}, got {_show(v)}")
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix: str = "") -> T:
     """Build dataclass `cls` from `data`, checking unknown keys, missing keys and types."""
     if not isinstance(data, dict):
-        raise DegustaError(f"{where}: {prefix.rstrip('.') or 'config'}: expected a mapping, got {data!r}")
+        raise DegustaError(f"{where}: {prefix.rstrip('.') or 'config'}: expected a mapping, got {_show(data)}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - set(fields))
+    unknown = sorted(set(data) - set(fields), key=str)
     if unknown:
+        name = unknown[0] if isinstance(unknown[0], str) and len(unknown[0]) <= 60 else _show(unknown[0])
         raise DegustaError(
-            f"{where}: unknown key '{prefix}{unknown[0]}' (known keys: {', '.join(sorted(fields))})"
+            f"{where}: unknown key '{prefix}{name}' (known keys: {', '.join(sorted(fields))})"
         )
     hints = typing.get_type_hints(cls)
     kwargs = {}
@@ -84,6 +199,8 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix:
         key = prefix + name
         if name in data:
             kwargs[name] = _convert(hints[name], data[name], where, key)
+            if "bounds" in field.metadata:
+                _check_bounds(kwargs[name], field.metadata["bounds"], where, key)
         elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
             raise DegustaError(f"{where}: missing required key '{key}'")
     try:
@@ -120,22 +237,22 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
                 return _convert(arg, value, where, key)
             except DegustaError as e:
                 errors.append(str(e))
-        raise DegustaError(errors[0] if len(errors) == 1 else f"{where}: {key}: expected {_name(tp)}, got {value!r}")
+        raise DegustaError(errors[0] if len(errors) == 1 else f"{where}: {key}: expected {_name(tp)}, got {_show(value)}")
     if origin is Literal:
         choices = get_args(tp)
         if value not in choices:
-            raise DegustaError(f"{where}: {key}: expected one of {list(choices)}, got {value!r}")
+            raise DegustaError(f"{where}: {key}: expected one of {list(choices)}, got {_show(value)}")
         return value
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise DegustaError(f"{where}: {key}: expected a list, got {value!r}")
+            raise DegustaError(f"{where}: {key}: expected a list, got {_show(value)}")
         args = get_args(tp)
         item_tp = args[0] if args else Any
         items = [_convert(item_tp, v, where, f"{key}[{i}]") for i, v in enumerate(value)]
         return items if origin is list else tuple(items)
     if origin is dict:
         if not isinstance(value, dict):
-            raise DegustaError(f"{where}: {key}: expected a mapping, got {value!r}")
+            raise DegustaError(f"{where}: {key}: expected a mapping, got {_show(value)}")
         _, vt = get_args(tp) or (Any, Any)
         return {k: _convert(vt, v, where, f"{key}.{k}") for k, v in value.items()}
     if dataclasses.is_dataclass(tp):
@@ -148,15 +265,33 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
             return value
     elif tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                out = float(value)
+            except OverflowError:
+                raise DegustaError(f"{where}: {key}: expected a finite number, got {_show(value)}") from None
+            if not math.isfinite(out):
+                raise DegustaError(f"{where}: {key}: expected a finite number, got {_show(value)}")
+            return out
     elif tp is str:
         if isinstance(value, str):
             return value
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and _show(value) == repr(value):
             return str(value)
     else:
         return value
-    raise DegustaError(f"{where}: {key}: expected {_name(tp)}, got {value!r}")
+    raise DegustaError(f"{where}: {key}: expected {_name(tp)}, got {_show(value)}")
+
+
+def _show(value: Any, n: int = 60) -> str:
+    """A short one-line repr of a user value (huge integers and long strings are summarised)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
+        return f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
+    try:
+        text = repr(value)
+    except (ValueError, RecursionError):
+        return f"a {type(value).__name__}"
+    text = " ".join(text.split())
+    return text if len(text) <= n else text[:n] + "..."
 
 
 def _name(tp: Any) -> str:

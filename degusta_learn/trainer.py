@@ -2,13 +2,24 @@
 
 Every trainer of the toolkit (the learned arrangement model, VLM fine-tuning) embeds a `TrainerConfig`
 under its config's `trainer:` section and calls `fit(module, datamodule, cfg.trainer, full_config)`.
+Every trainer's `run` wraps its whole body in `with training_run(cfg.trainer, monitors=...)`: it checks
+the trainer values first (accelerator present, devices, precision, strategy, that `monitor` is a key the
+module logs; one-line errors naming the key), then seeds Python / numpy / torch *before* any model or data
+is built (same seed, same initial weights), and removes the run folder again if it created it and a user
+mistake stops the run before its first checkpoint.
+
 What `fit` does, in order:
 
+0. `check_trainer` again and `build_trainer` (Lightning's own complaints become one-line errors) — before
+   anything is written.
 1. `prepare_run_dir`: makes `<run_dir>/<run_name>/` (default `checkpoints/<run>/`) and writes the resolved
    config there as `config.yaml` (atomically). A folder that already holds `last.ckpt` is resumed when
    `resume: true` (its `config.yaml` must agree with the new one outside the `trainer` section) and refused
-   otherwise, so an interrupted run is never overwritten by accident.
-2. `seed_everything(seed, workers=True)`.
+   otherwise, so an interrupted run is never overwritten by accident. Paths in the two configs are compared
+   resolved (`data/x` and `/abs/data/x` are the same dataset). A truncated or corrupt `last.ckpt` is
+   detected before Lightning reads it: the run resumes from `best.ckpt` with a printed note, or is refused
+   with a one-line message naming the file when no good checkpoint is left.
+2. `seed_everything(seed, workers=True)` (again: the data order of a resumed run is seeded too).
 3. `build_trainer`: a `lightning.Trainer` with CSV + TensorBoard loggers (`csv/version_N`, `tb/version_N`:
    a resumed run opens a new version, earlier logs are kept), a `ModelCheckpoint` writing `last.ckpt` and
    `best.ckpt` (best by `monitor`, e.g. validation RMSD), a progress bar, and the accelerator / devices /
@@ -16,6 +27,8 @@ What `fit` does, in order:
 4. `trainer.fit(..., ckpt_path=last.ckpt if resuming, weights_only=True)`; `last.ckpt` is written after
    every validation and once more when training ends, so a run stopped by a crash or Ctrl-C resumes from
    its last validation and a finished run can be extended with a larger `max_epochs` / `max_steps`.
+   Every checkpoint is written atomically *inside the run folder* (`AtomicCheckpointIO`: a hidden temp file
+   beside it, fsync, `os.replace`), so a kill at any moment leaves the previous complete checkpoint.
 
 Checkpoints must load weights-only: a LightningModule that calls `save_hyperparameters` must pass plain
 dicts / lists / numbers / strings only (e.g. `dataclasses.asdict(cfg)`), never dataclasses or Paths.
@@ -27,20 +40,33 @@ Usage:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
+import shutil
+import sys
+import tempfile
 import warnings
+import zipfile
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from degusta_learn.config import read_yaml, to_dict
+from degusta_learn.config import bounded, read_yaml, to_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_text
 
 LAST = "last.ckpt"
 BEST = "best.ckpt"
+TMP_PREFIX = ".tmp-"
+"""Prefix of the temp files checkpoints are written to before `os.replace` (stale ones are removed)."""
+ACCELERATORS = ("auto", "cpu", "gpu", "cuda", "mps", "tpu")
+PRECISIONS = ("32-true", "32", "64-true", "64", "16-mixed", "16", "bf16-mixed", "bf16", "16-true", "bf16-true",
+              "transformer-engine", "transformer-engine-float16")
+MAX_DEVICES = 4096
 
 
 @dataclass
@@ -53,11 +79,11 @@ class TrainerConfig:
     """Parent folder of run folders."""
     resume: bool = True
     """Continue from `<run>/last.ckpt` when it exists (false: refuse to reuse a folder that has one)."""
-    seed: int = 0
+    seed: int = bounded(0, 0, 2**32 - 1)
     """Seed for Python, numpy, torch and data-loader workers."""
-    max_epochs: int = 10
+    max_epochs: int = bounded(10, 1, 1_000_000, special=(-1,))
     """Stop after this many epochs (-1: no epoch limit, use max_steps)."""
-    max_steps: int = -1
+    max_steps: int = bounded(-1, 1, 1_000_000_000, special=(-1,))
     """Stop after this many optimizer steps (-1: no step limit)."""
     accelerator: str = "auto"
     """"cpu", "gpu", "auto" (GPU when present)."""
@@ -67,15 +93,15 @@ class TrainerConfig:
     """Lightning strategy: "auto", "ddp", "ddp_spawn", "fsdp", ... (multi-GPU needs no code change)."""
     precision: str = "32-true"
     """"32-true", "bf16-mixed" (GPU), "16-mixed" (GPU)."""
-    accumulate_grad_batches: int = 1
+    accumulate_grad_batches: int = bounded(1, 1, 10_000)
     """Gradient accumulation: effective batch = batch_size * this * devices."""
-    gradient_clip_val: float | None = 1.0
+    gradient_clip_val: float | None = bounded(1.0, 0.0)
     """Clip the gradient norm to this (null: no clipping)."""
-    log_every_n_steps: int = 10
+    log_every_n_steps: int = bounded(10, 1, 1_000_000_000)
     """How often training losses are logged."""
     val_check_interval: int | float = 1.0
     """Validate every this fraction of an epoch (float) or number of batches (int)."""
-    check_val_every_n_epoch: int = 1
+    check_val_every_n_epoch: int = bounded(1, 1, 1_000_000)
     """Validate every this many epochs."""
     monitor: str | None = "val/rmsd"
     """Metric that picks best.ckpt (null: only last.ckpt)."""
@@ -83,23 +109,226 @@ class TrainerConfig:
     """"min" or "max" for `monitor`."""
     progress_bar: bool = True
     """Show Lightning's progress bar."""
-    num_sanity_val_steps: int = 0
+    num_sanity_val_steps: int = bounded(0, 0, 1_000_000, special=(-1,))
     """Validation batches run before training as a smoke check (0: none)."""
 
     def __post_init__(self):
-        if not self.run_name or "/" in self.run_name or self.run_name in (".", ".."):
-            raise DegustaError(f"trainer.run_name: expected a plain folder name, got {self.run_name!r}")
+        if (not self.run_name or any(c in self.run_name for c in "/\\\0") or self.run_name in (".", "..")
+                or len(self.run_name) > 200):
+            raise DegustaError(f"trainer.run_name: expected a plain folder name, got {self.run_name[:80]!r}")
+        if not self.run_dir or "\0" in self.run_dir:
+            raise DegustaError(f"trainer.run_dir: expected a folder path, got {self.run_dir[:80]!r}")
         if self.max_epochs == -1 and self.max_steps == -1:
             raise DegustaError("trainer.max_epochs / trainer.max_steps: set at least one of them (not both -1)")
         if self.monitor_mode not in ("min", "max"):
             raise DegustaError(f"trainer.monitor_mode: expected 'min' or 'max', got {self.monitor_mode!r}")
         if self.accumulate_grad_batches < 1:
             raise DegustaError(f"trainer.accumulate_grad_batches: expected >= 1, got {self.accumulate_grad_batches}")
+        if self.accelerator not in ACCELERATORS:
+            raise DegustaError(f"trainer.accelerator: expected one of {', '.join(ACCELERATORS)}, "
+                               f"got {self.accelerator[:40]!r}")
+        if self.precision not in PRECISIONS:
+            raise DegustaError(f"trainer.precision: expected one of {', '.join(PRECISIONS[:10])}, "
+                               f"got {self.precision[:40]!r}")
+        self.devices = _check_devices(self.devices)
+        vci = self.val_check_interval
+        if isinstance(vci, float) and not 0.0 < vci <= 1.0:
+            raise DegustaError(f"trainer.val_check_interval: a fraction of an epoch must be in (0, 1], got {vci} "
+                               f"(or give a whole number of batches)")
+        if isinstance(vci, int) and not 1 <= vci <= 1_000_000_000:
+            raise DegustaError(f"trainer.val_check_interval: expected a number of batches >= 1, got {vci}")
+        if self.monitor is not None and not self.monitor.strip():
+            raise DegustaError("trainer.monitor: expected a logged metric name (or null), got ''")
+        if not self.strategy or not isinstance(self.strategy, str):
+            raise DegustaError(f"trainer.strategy: expected a Lightning strategy name, got {self.strategy!r}")
 
     @property
     def path(self) -> Path:
         """The run folder `<run_dir>/<run_name>`."""
         return Path(self.run_dir) / self.run_name
+
+
+def _check_devices(devices: Any) -> Any:
+    """`devices` as Lightning takes it: "auto", a count >= 1 (-1: all), or a list of device indices."""
+    bad = DegustaError(f"trainer.devices: expected \"auto\", a number of devices (1..{MAX_DEVICES}, -1: all) "
+                       f"or a list of device indices, got {str(devices)[:40]!r}")
+    if isinstance(devices, str):
+        text = devices.strip()
+        if text == "auto":
+            return "auto"
+        try:
+            parts = [int(p) for p in text.split(",") if p.strip()]
+        except ValueError:
+            raise bad from None
+        if not parts:
+            raise bad
+        devices = parts[0] if len(parts) == 1 and "," not in text else parts
+    if isinstance(devices, bool):
+        raise bad
+    if isinstance(devices, int):
+        if devices == -1 or 1 <= devices <= MAX_DEVICES:
+            return devices
+        raise bad
+    if isinstance(devices, (list, tuple)) and devices and len(devices) <= MAX_DEVICES and all(
+            isinstance(d, int) and not isinstance(d, bool) and 0 <= d < MAX_DEVICES for d in devices) \
+            and len(set(devices)) == len(devices):
+        return list(devices)
+    raise bad
+
+
+def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> None:
+    """Check what only this machine and the module can tell: the accelerator is present, enough devices,
+    a known strategy, a precision this accelerator runs, and (given the keys the module logs) the monitor.
+
+    Raises DegustaError naming the `trainer.` key; writes nothing.
+    """
+    import torch
+
+    acc = cfg.accelerator
+    gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if acc in ("gpu", "cuda") and gpus == 0:
+        raise DegustaError(f"trainer.accelerator: {acc!r} but no CUDA GPU is available on this machine; "
+                           f"use trainer.accelerator=cpu (or auto)")
+    if acc == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+        raise DegustaError("trainer.accelerator: 'mps' but Apple MPS is not available here; use cpu (or auto)")
+    if acc == "tpu":
+        try:
+            import torch_xla  # noqa: F401
+        except ImportError:
+            raise DegustaError("trainer.accelerator: 'tpu' but no TPU runtime (torch_xla) is installed; "
+                               "use cpu (or auto)") from None
+    on_gpu = acc in ("gpu", "cuda") or (acc == "auto" and gpus > 0)
+    if on_gpu:
+        wanted = cfg.devices if isinstance(cfg.devices, int) else len(cfg.devices) if isinstance(cfg.devices, list) else 0
+        top = max(cfg.devices) + 1 if isinstance(cfg.devices, list) else wanted
+        if wanted > gpus or top > gpus:
+            raise DegustaError(f"trainer.devices: {cfg.devices} asks for more GPUs than the {gpus} available here")
+    if cfg.precision.startswith("transformer-engine") and not on_gpu:
+        raise DegustaError(f"trainer.precision: {cfg.precision!r} needs a GPU; use 32-true or bf16-mixed on CPU")
+    if cfg.precision in ("16-true", "16") and not on_gpu:
+        raise DegustaError(f"trainer.precision: {cfg.precision!r} (float16) needs a GPU; use 32-true or bf16-mixed on CPU")
+    if cfg.strategy != "auto":
+        from lightning.pytorch.strategies import StrategyRegistry
+
+        names = StrategyRegistry.available_strategies()
+        if cfg.strategy not in names:
+            raise DegustaError(f"trainer.strategy: unknown strategy {cfg.strategy[:40]!r} (use auto, ddp, ddp_spawn, "
+                               f"fsdp, deepspeed, ...)")
+        if (cfg.strategy.startswith("fsdp") or cfg.strategy.startswith("deepspeed")) and not on_gpu:
+            raise DegustaError(f"trainer.strategy: {cfg.strategy!r} needs a GPU accelerator; use auto or ddp on CPU")
+    if monitors is not None and cfg.monitor is not None:
+        known = sorted(set(monitors))
+        if cfg.monitor not in known:
+            raise DegustaError(f"trainer.monitor: {cfg.monitor[:60]!r} is never logged by this trainer "
+                               f"(logged: {', '.join(known)}; or null for last.ckpt only)")
+
+
+def _trainer_key_in(message: str) -> str | None:
+    """The TrainerConfig field a Lightning error message names (as `field` or field=), if any."""
+    for f in dataclasses.fields(TrainerConfig):
+        if f"`{f.name}`" in message or f"{f.name}=" in message:
+            return f.name
+    return None
+
+
+def _first_missing(run: Path) -> Path | None:
+    """The outermost folder of `run`'s path that does not exist yet (None: `run` exists)."""
+    missing = None
+    for p in [run, *run.parents]:
+        if p.exists():
+            break
+        missing = p
+    return missing
+
+
+def _remove_if_empty_run(run: Path, created: Path | None) -> None:
+    """Remove a run folder this call created (and the parents it created) when it holds no checkpoint."""
+    if created is None or not run.is_dir() or (run / LAST).exists() or (run / BEST).exists():
+        return
+    shutil.rmtree(run, ignore_errors=True)
+    for p in run.parents:  # parents made for it, while empty (never a folder that was there before)
+        if p != created and created not in p.parents:
+            break
+        try:
+            p.rmdir()
+        except OSError:
+            break
+
+
+@contextlib.contextmanager
+def training_run(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> Iterator[Path]:
+    """The frame of every trainer's `run`: check trainer values, seed, and tidy up after a user mistake.
+
+    Checks `cfg` (and `monitor` against `monitors`, the keys the module logs) before anything is built or
+    written, seeds everything with `cfg.seed` *before* the caller builds its model and data (two runs with
+    one seed start from identical weights), and, when the body raises DegustaError before the run's first
+    checkpoint, removes the run folder if this call did not find it there. Yields the run folder path.
+    """
+    check_trainer(cfg, monitors)
+    seed_everything(cfg.seed)
+    run = cfg.path
+    created = _first_missing(run)
+    try:
+        yield run
+    except DegustaError:
+        _remove_if_empty_run(run, created)
+        raise
+    except (ValueError, TypeError) as e:  # Lightning's checks of trainer values against the data (e.g.
+        key = _trainer_key_in(str(e))      # val_check_interval > batches per epoch) become one-line errors
+        if key is None:
+            raise
+        _remove_if_empty_run(run, created)
+        first = " ".join(str(e).split(". ")[0].split())[:240]
+        raise DegustaError(f"trainer.{key}: {first}") from None
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch (and data-loader workers) quietly."""
+    import lightning as L
+
+    L.seed_everything(seed, workers=True, verbose=False)
+
+
+def checkpoint_problem(path: Path) -> str | None:
+    """None when `path` is a complete, weights-only-readable Lightning checkpoint; else what is wrong."""
+    try:
+        size = path.stat().st_size
+        if size == 0:
+            return "it is empty (0 bytes)"
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+            if bad is not None:
+                return f"its entry {bad} is damaged"
+            if not any(n.endswith("data.pkl") for n in z.namelist()):
+                return "it is not a torch checkpoint"
+    except (zipfile.BadZipFile, EOFError):
+        return "it is truncated or not a torch checkpoint"
+    except OSError as e:
+        return f"it cannot be read ({e.strerror or e})"
+    import torch
+
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as e:  # noqa: BLE001 - any failure to read means "unusable"
+        return f"it cannot be loaded ({type(e).__name__})"
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "global_step" not in ckpt:
+        return "it is not a Lightning training checkpoint"
+    return None
+
+
+def _pick_resume(run: Path) -> Path:
+    """last.ckpt when it is intact; else best.ckpt with a printed note; else a one-line refusal."""
+    last = run / LAST
+    problem = checkpoint_problem(last)
+    if problem is None:
+        return last
+    best = run / BEST
+    if best.is_file() and checkpoint_problem(best) is None:
+        print(f"degusta: note: {last} is unusable ({problem}); resuming from {best} instead "
+              f"(steps after its validation are trained again)", file=sys.stderr)
+        return best
+    raise DegustaError(f"{last}: cannot resume, {problem} and no intact {BEST} is beside it; delete {last} to "
+                       f"start this run again from scratch, or set trainer.run_name to a new folder")
 
 
 def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None) -> tuple[Path, Path | None]:
@@ -117,7 +346,6 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None) -> tuple[Path, 
             this one outside the `trainer` section (resuming would mix two different models).
     """
     run = cfg.path
-    run.mkdir(parents=True, exist_ok=True)
     resolved = to_dict(full_config) if dataclasses.is_dataclass(full_config) else dict(full_config or to_dict(cfg))
     last = run / LAST
     ckpt = None
@@ -127,7 +355,14 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None) -> tuple[Path, 
                                f"it or choose another trainer.run_name")
         if (run / "config.yaml").exists():
             _check_same(read_yaml(run / "config.yaml"), resolved, run / "config.yaml")
-        ckpt = last
+        ckpt = _pick_resume(run)
+    try:
+        run.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise DegustaError(f"trainer.run_dir: cannot create the run folder {run} ({e.strerror or e})") from None
+    for stale in run.glob(f"{TMP_PREFIX}*"):  # a checkpoint write a kill interrupted
+        with contextlib.suppress(OSError):
+            stale.unlink()
     atomic_write_text(run / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
     return run, ckpt
 
@@ -139,14 +374,86 @@ def _check_same(old: dict, new: dict, where: Path, prefix: str = "") -> None:
         a, b = old.get(key), new.get(key)
         if isinstance(a, dict) and isinstance(b, dict):
             _check_same(a, b, where, prefix + key + ".")
-        elif a != b and not (isinstance(a, list) and isinstance(b, tuple) and list(b) == a):
+        elif a != b and not (isinstance(a, list) and isinstance(b, tuple) and list(b) == a) \
+                and not _same_path(a, b):
             raise DegustaError(f"{where}: cannot resume, '{prefix}{key}' was {a!r} and is now {b!r} "
                                f"(use another trainer.run_name, or trainer.resume=false in a new folder)")
 
 
+def _same_path(a: Any, b: Any) -> bool:
+    """Two strings naming the same existing file or folder (relative vs absolute, `./x` vs `x`, symlinks)."""
+    if not (isinstance(a, str) and isinstance(b, str)) or not a or not b:
+        return False
+    try:
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def _atomic_checkpoint_io():
+    """A TorchCheckpointIO whose saves go to a temp file in the checkpoint's own folder, then `os.replace`.
+
+    Lightning's default writes through an fsspec transaction whose temp file may sit on another filesystem
+    (then the commit *copies* over last.ckpt, and a kill mid-copy leaves a truncated file); a rename inside
+    one folder is atomic: readers see the old complete file or the new complete one, never a part.
+    """
+    import torch
+    from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+
+    class AtomicCheckpointIO(TorchCheckpointIO):
+        def save_checkpoint(self, checkpoint: dict, path, storage_options: Any = None) -> None:
+            if storage_options is not None:
+                raise TypeError("AtomicCheckpointIO takes no storage_options")
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f"{TMP_PREFIX}{path.name}.")
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    torch.save(checkpoint, f)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.replace(tmp, path)
+            except BaseException:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+                raise
+            with contextlib.suppress(OSError):  # make the rename itself durable
+                dfd = os.open(path.parent, os.O_RDONLY)
+                try:
+                    os.fsync(dfd)
+                finally:
+                    os.close(dfd)
+
+    return AtomicCheckpointIO()
+
+
+def _monitor_guard(monitor: str):
+    """A callback that fails fast, with a one-line error, when a validation did not log `monitor`.
+
+    It runs before ModelCheckpoint (Lightning orders checkpoint callbacks last), whose own error would be a
+    multi-line MisconfigurationException. Trainers also check `monitor` up front (`check_trainer`); this
+    catches a module that logs less than it declared.
+    """
+    from lightning.pytorch.callbacks import Callback
+
+    class MonitorGuard(Callback):
+        def on_validation_end(self, trainer, pl_module) -> None:
+            if trainer.sanity_checking or monitor in trainer.callback_metrics:
+                return
+            logged = sorted(k for k in trainer.callback_metrics if "/" in k)
+            raise DegustaError(f"trainer.monitor: {monitor!r} was not logged by the validation at step "
+                               f"{trainer.global_step} (logged: {', '.join(logged) or 'nothing'})")
+
+    return MonitorGuard()
+
+
 def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
-    """A `lightning.Trainer` writing into `run`: loggers, checkpointing, progress bar, devices."""
+    """A `lightning.Trainer` writing into `run`: loggers, checkpointing, progress bar, devices.
+
+    Lightning's own complaints about the trainer values become one-line DegustaErrors naming `trainer`.
+    """
     import lightning as L
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
     from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
     from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 
@@ -154,33 +461,56 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
                            save_top_k=1 if cfg.monitor else 0, save_last=True, enable_version_counter=False,
                            auto_insert_metric_name=False)
     cbs = [ckpt, *(callbacks or [])]
+    if cfg.monitor:
+        cbs.append(_monitor_guard(cfg.monitor))
     if cfg.progress_bar:
         cbs.append(TQDMProgressBar(refresh_rate=max(1, cfg.log_every_n_steps)))
     loggers = [CSVLogger(save_dir=run, name="csv"), TensorBoardLogger(save_dir=run, name="tb", default_hp_metric=False)]
-    return L.Trainer(
-        accelerator=cfg.accelerator, devices=cfg.devices, strategy=cfg.strategy, precision=cfg.precision,
-        max_epochs=cfg.max_epochs, max_steps=cfg.max_steps, accumulate_grad_batches=cfg.accumulate_grad_batches,
-        gradient_clip_val=cfg.gradient_clip_val, log_every_n_steps=cfg.log_every_n_steps,
-        val_check_interval=cfg.val_check_interval, check_val_every_n_epoch=cfg.check_val_every_n_epoch,
-        num_sanity_val_steps=cfg.num_sanity_val_steps, enable_progress_bar=cfg.progress_bar,
-        enable_model_summary=cfg.progress_bar, logger=loggers, callbacks=cbs, default_root_dir=run,
-    )
+    # sharded strategies write their own checkpoint folders; every other one saves through one CheckpointIO
+    sharded = cfg.strategy.startswith(("fsdp", "deepspeed"))
+    try:
+        return L.Trainer(
+            accelerator=cfg.accelerator, devices=cfg.devices, strategy=cfg.strategy, precision=cfg.precision,
+            max_epochs=cfg.max_epochs, max_steps=cfg.max_steps, accumulate_grad_batches=cfg.accumulate_grad_batches,
+            gradient_clip_val=cfg.gradient_clip_val, log_every_n_steps=cfg.log_every_n_steps,
+            val_check_interval=cfg.val_check_interval, check_val_every_n_epoch=cfg.check_val_every_n_epoch,
+            num_sanity_val_steps=cfg.num_sanity_val_steps, enable_progress_bar=cfg.progress_bar,
+            enable_model_summary=cfg.progress_bar, logger=loggers, callbacks=cbs, default_root_dir=run,
+            plugins=None if sharded else [_atomic_checkpoint_io()],
+        )
+    except (MisconfigurationException, ValueError, ImportError, RuntimeError) as e:
+        first = " ".join(str(e).split(". ")[0].split())[:200]
+        raise DegustaError(f"trainer: Lightning refused these settings ({first})") from None
 
 
-def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbacks: list | None = None) -> Path:
+def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbacks: list | None = None,
+        monitors: Iterable[str] | None = None) -> Path:
     """Train `module` on `datamodule` per `cfg`; returns the run folder (with last.ckpt, best.ckpt).
 
     Resumes from `<run>/last.ckpt` when it exists and `cfg.resume` is true (model, optimizer, scheduler,
-    epoch and global step all continue). Checkpoints are read weights-only.
+    epoch and global step all continue; a corrupt last.ckpt falls back to best.ckpt or is refused).
+    Checkpoints are read weights-only and written atomically. Bad trainer values are refused before the
+    run folder is touched; a DegustaError before the first checkpoint removes a folder this call created.
     """
-    import lightning as L
-
+    check_trainer(cfg, monitors)
+    trainer = build_trainer(cfg, cfg.path, callbacks)
+    created = _first_missing(cfg.path)
     run, ckpt = prepare_run_dir(cfg, full_config)
-    L.seed_everything(cfg.seed, workers=True, verbose=False)
-    trainer = build_trainer(cfg, run, callbacks)
-    with warnings.catch_warnings():  # the run folder holds config.yaml (and logs) by design
-        warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
+    seed_everything(cfg.seed)
+    try:
+        with warnings.catch_warnings():  # the run folder holds config.yaml (and logs) by design
+            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+            trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
+    except DegustaError:
+        _remove_if_empty_run(run, created)
+        raise
+    except (ValueError, TypeError) as e:  # Lightning's checks of trainer values against the data (e.g.
+        key = _trainer_key_in(str(e))      # val_check_interval > batches per epoch) become one-line errors
+        if key is None:
+            raise
+        _remove_if_empty_run(run, created)
+        first = " ".join(str(e).split(". ")[0].split())[:240]
+        raise DegustaError(f"trainer.{key}: {first}") from None
     if not trainer.interrupted:  # last.ckpt is written at each validation; also keep the steps after the last one
         trainer.save_checkpoint(run / LAST, weights_only=False)  # full state (optimizer too), to resume
     return run

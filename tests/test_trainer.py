@@ -70,7 +70,7 @@ def test_fit_writes_run_folder_and_resumes(tmp_path):
 def test_refuses_to_overwrite_or_mix_runs(tmp_path):
     run, resume_from = prepare_run_dir(cfg(tmp_path), {"kind": "toy", "lr": 0.1})
     assert resume_from is None and read_yaml(run / "config.yaml") == {"kind": "toy", "lr": 0.1}
-    (run / "last.ckpt").write_bytes(b"stands in for an interrupted run")
+    torch.save({"state_dict": {}, "global_step": 2}, run / "last.ckpt")  # stands in for an interrupted run
     assert prepare_run_dir(cfg(tmp_path), {"kind": "toy", "lr": 0.1, "trainer": {"max_steps": 9}})[1] == run / "last.ckpt"
     with pytest.raises(DegustaError, match="trainer.resume=true"):
         prepare_run_dir(cfg(tmp_path, resume=False), {"kind": "toy", "lr": 0.1})

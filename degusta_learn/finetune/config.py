@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.data import COMPOSE, GROUPS
 from degusta_learn.finetune.lora import LoraConfig
@@ -20,7 +21,7 @@ class ModelConfig:
     """idefics3 or qwen2vl: build a random-weight tiny model at `name` if that folder is missing (CPU smoke runs)."""
     dtype: str = "auto"
     """auto (bf16 on a bf16 GPU, else fp32), float32, bfloat16, float16."""
-    image_size: int | None = None
+    image_size: int | None = bounded(None, 16, 4096)
     """Pixels per image side the model sees (Idefics3: one tile; Qwen2-VL: image_size^2 px). null: model default."""
     gradient_checkpointing: bool = False
     """Recompute activations in backward (less memory, ~30% slower); input grads are enabled for LoRA."""
@@ -30,9 +31,9 @@ class ModelConfig:
 class GridConfig:
     """The labelled grid of grid methods (must match the predict config's grid)."""
 
-    rows: int = 8
+    rows: int = bounded(8, 1, 99)
     """Rows, numbered from the top."""
-    cols: int = 8
+    cols: int = bounded(8, 1, 26)
     """Columns, lettered from the left."""
 
 
@@ -44,11 +45,11 @@ class DataConfig:
     """Context lengths of the training episodes (all trials of every train participant, per length)."""
     val_context: int = 4
     """Context length of the validation episodes (val participants)."""
-    val_episodes: int = 16
+    val_episodes: int = bounded(16, 0, 100_000)
     """Validation episodes generated per validation (0: no validation)."""
-    max_train_episodes: int | None = None
+    max_train_episodes: int | None = bounded(None, 1, 10_000_000)
     """Cap on training episodes (a seeded subset; null: all)."""
-    render_size: int = 448
+    render_size: int = bounded(448, 32, 4096)
     """Side in pixels the lifted images are drawn at (the processor then resizes to model.image_size)."""
     grid: GridConfig = field(default_factory=GridConfig)
     """Grid of grid methods."""
@@ -56,11 +57,11 @@ class DataConfig:
     """Image groups sent: objects (GoMO sheets), context (final_state_k), target (initial_state_1)."""
     compose: list[str] = field(default_factory=list)
     """Groups drawn as ONE labelled canvas to save image tokens: objects, context, all."""
-    max_length: int = 2048
+    max_length: int = bounded(2048, 16, 262_144)
     """Token budget of one example (prompt + images + answer); longer examples are an error, never truncated."""
-    batch_size: int = 4
+    batch_size: int = bounded(4, 1, 4096)
     """Examples per step (effective batch = this x trainer.accumulate_grad_batches x devices)."""
-    num_workers: int = 0
+    num_workers: int = bounded(0, 0, 256)
     """DataLoader worker processes rendering images (0: in the main process)."""
 
     def __post_init__(self):
@@ -80,11 +81,11 @@ class DataConfig:
 class OptimConfig:
     """The `optim:` section."""
 
-    lr: float = 2e-4
+    lr: float = bounded(2e-4, 0.0, 100.0)
     """Peak learning rate (LoRA ~1e-4..5e-4; full fine-tuning ~1e-5..5e-5; tiny from scratch ~1e-3)."""
     weight_decay: float = 0.0
     """AdamW weight decay."""
-    warmup_steps: int = 10
+    warmup_steps: int = bounded(10, 0, 1_000_000_000)
     """Linear warmup steps."""
     schedule: str = "cosine"
     """cosine (to 5% of lr at the last step) or constant."""
@@ -102,7 +103,7 @@ class EvalConfig:
     """Constrain validation answers to the answer grammar (parse rate 100% by construction)."""
     report_unconstrained: bool = False
     """Also generate unconstrained and log val/parse_rate_unconstrained (twice the validation time)."""
-    max_new_tokens: int = 384
+    max_new_tokens: int = bounded(384, 1, 32_768)
     """Most new tokens per generated answer."""
 
 
@@ -116,7 +117,7 @@ class FinetuneConfig:
     """Dataset folder; train/val participants come from its seeded split."""
     method: str = "mogma"
     """Prompting method whose prompts and answer format are learned: mogma, logma (grid) or mouma, louma."""
-    seed: int = 0
+    seed: int = bounded(0, 0, 2**32 - 1)
     """Seed of the participant split (use the same `seed` in predict configs) and of training."""
     model: ModelConfig = field(default_factory=ModelConfig)
     """Which VLM."""

@@ -22,6 +22,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 
 MODES = ("lora", "full", "qlora")
@@ -36,9 +37,9 @@ class LoraConfig:
 
     mode: str = "lora"
     """"lora" (adapters on a frozen base), "full" (train every weight), "qlora" (4-bit base; GPU + bitsandbytes)."""
-    r: int = 16
+    r: int = bounded(16, 1, 4096)
     """Adapter rank: higher = more capacity and memory."""
-    alpha: int = 32
+    alpha: int = bounded(32, 1, 1_000_000)
     """LoRA scaling numerator (effective scale alpha / r)."""
     dropout: float = 0.05
     """Dropout on the adapter input."""

@@ -23,6 +23,16 @@ from torch.utils.data import DataLoader
 from degusta_learn.finetune.loss import lm_loss, unwrap
 
 
+def monitor_keys(cfg) -> set[str]:
+    """Every metric FinetuneModule logs under a FinetuneConfig `cfg` (what `trainer.monitor` may name)."""
+    keys = {"train/loss", "train/answer_tokens"}
+    if cfg.data.val_episodes > 0:  # no validation: only training losses exist
+        keys |= {"val/loss", "val/parse_rate", "val/rmsd", "val/object_accuracy", "val/set_rmsd", "val/count_error"}
+        if cfg.eval.report_unconstrained and cfg.eval.constrained:
+            keys.add("val/parse_rate_unconstrained")
+    return keys
+
+
 class FinetuneModule(L.LightningModule):
     """Wraps a (peft) VLM; see the module docstring."""
 

@@ -93,43 +93,44 @@ def run(cfg: FinetuneConfig) -> Path:
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.generate import chat_format
-    from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing
+    from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing, monitor_keys
     from degusta_learn.prompting import answer_kind
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
-    from degusta_learn.trainer import fit
+    from degusta_learn.trainer import fit, training_run
 
-    ds = load_dataset(cfg.dataset)
-    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
-    model, processor = prepare_model(cfg)
-    if cfg.model.gradient_checkpointing:
-        enable_gradient_checkpointing(model)
-    fmt = chat_format(model, processor)
-    collator = Collator(processor, fmt, cfg.data.max_length, getattr(model.config, "image_token_id", None))
-    train, val = build_examples(cfg, ds, grid)
-    check_budget(train, collator)
-    per_epoch = -(-len(train) // cfg.data.batch_size)
-    vci = cfg.trainer.val_check_interval
-    if isinstance(vci, int) and not isinstance(vci, bool) and vci > per_epoch and len(val):
-        raise DegustaError(f"trainer.val_check_interval: {vci} batches is more than an epoch ({per_epoch} batches "
-                           f"of {cfg.data.batch_size}); use at most {per_epoch} or a fraction like 1.0")
-    run_dir = cfg.trainer.path
-    module = FinetuneModule(model, processor, cfg, ds, grid, answer_kind(cfg.method), run_dir=run_dir)
-    data = FinetuneData(train, val, collator, cfg.data.batch_size, cfg.data.num_workers)
-    run_dir = fit(module, data, cfg.trainer, full_config=cfg)
-    if module.trainer is not None and not module.trainer.is_global_zero:
+    with training_run(cfg.trainer, monitor_keys(cfg)):  # checks trainer values, seeds before the model exists
+        ds = load_dataset(cfg.dataset)
+        grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+        model, processor = prepare_model(cfg)
+        if cfg.model.gradient_checkpointing:
+            enable_gradient_checkpointing(model)
+        fmt = chat_format(model, processor)
+        collator = Collator(processor, fmt, cfg.data.max_length, getattr(model.config, "image_token_id", None))
+        train, val = build_examples(cfg, ds, grid)
+        check_budget(train, collator)
+        per_epoch = -(-len(train) // cfg.data.batch_size)
+        vci = cfg.trainer.val_check_interval
+        if isinstance(vci, int) and not isinstance(vci, bool) and vci > per_epoch:  # Lightning refuses it even without val
+            raise DegustaError(f"trainer.val_check_interval: {vci} batches is more than an epoch ({per_epoch} batches "
+                               f"of {cfg.data.batch_size}); use at most {per_epoch} or a fraction like 1.0")
+        run_dir = cfg.trainer.path
+        module = FinetuneModule(model, processor, cfg, ds, grid, answer_kind(cfg.method), run_dir=run_dir)
+        data = FinetuneData(train, val, collator, cfg.data.batch_size, cfg.data.num_workers)
+        run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
+        if module.trainer is not None and not module.trainer.is_global_zero:
+            return run_dir
+        if module.lora:
+            out = lora.save_adapter(model, run_dir / "adapter")
+            if cfg.lora.merge:
+                write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor)
+        else:
+            out = run_dir / "model"
+            model.save_pretrained(str(out))
+            processor.save_pretrained(str(out))
+        write_meta(out, cfg, processor)
+        write_meta(run_dir, cfg, processor)
         return run_dir
-    if module.lora:
-        out = lora.save_adapter(model, run_dir / "adapter")
-        if cfg.lora.merge:
-            write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor)
-    else:
-        out = run_dir / "model"
-        model.save_pretrained(str(out))
-        processor.save_pretrained(str(out))
-    write_meta(out, cfg, processor)
-    write_meta(run_dir, cfg, processor)
-    return run_dir
 
 
 TRAINER = TrainerSpec(FinetuneConfig, run, "fine-tune a VLM (LoRA / QLoRA / full) on lifted images of a "

@@ -36,6 +36,7 @@ from torch.utils.data import DataLoader, Dataset as TorchDataset
 
 from degusta_learn.baselines.learned.features import onto_surface
 from degusta_learn.baselines.learned.slots import collate_slots
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import CONTEXT_LENGTHS, Arrangement, Dataset, Episode, Placement, make_episodes
 from degusta_learn.scene.episodes import split_participants
@@ -47,17 +48,17 @@ class DataConfig:
 
     dataset: str = "data/naturalistic"
     """Dataset folder (`degusta data generate naturalistic --out data/naturalistic`)."""
-    split_seed: int = 0
+    split_seed: int = bounded(0, 0, 2**32 - 1)
     """Seed of the participant split; use the same `seed` in predict configs so test stays unseen."""
     context_lengths: list[int] = field(default_factory=lambda: [0, 2, 4])
     """Context lengths mixed during training (one model for all)."""
     val_context_lengths: list[int] = field(default_factory=lambda: [0, 2, 4])
     """Context lengths of the validation episodes."""
-    batch_size: int = 32
+    batch_size: int = bounded(32, 1, 65_536)
     """Episodes per batch (per device)."""
-    repeats: int = 4
+    repeats: int = bounded(4, 1, 10_000)
     """Samples per (participant, target, context length) in one epoch (each drawn afresh)."""
-    num_workers: int = 0
+    num_workers: int = bounded(0, 0, 256)
     """DataLoader worker processes (0: load in the main process; encoding is cheap)."""
     table_swap: float = 0.2
     """Probability, per arrangement, of moving it onto another table (bounds-relative positions)."""

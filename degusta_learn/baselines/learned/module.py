@@ -27,6 +27,7 @@ import torch
 
 from degusta_learn.baselines.learned.features import Vocab, onto_surface
 from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import score_prediction
 from degusta_learn.scene import Placement
@@ -48,7 +49,7 @@ class OptimConfig:
     """Peak learning rate."""
     weight_decay: float = 0.01
     """AdamW weight decay (not applied to embeddings, norms and biases)."""
-    warmup_steps: int = 100
+    warmup_steps: int = bounded(100, 0, 1_000_000_000)
     """Linear warmup steps."""
     min_lr_ratio: float = 0.05
     """Final learning rate as a fraction of lr (cosine schedule over the whole run)."""
@@ -58,6 +59,18 @@ class OptimConfig:
             raise DegustaError(f"optim.lr: expected > 0, got {self.lr}")
         if not 0 <= self.min_lr_ratio <= 1:
             raise DegustaError(f"optim.min_lr_ratio: expected in [0, 1], got {self.min_lr_ratio}")
+
+
+LOSS_TERMS = ("set", "object", "position", "rotation", "step")  # SlotModel.loss terms besides "loss"
+VAL_METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "acceptable_0.05", "acceptable_0.10")
+
+
+def monitor_keys(val_context_lengths) -> set[str]:
+    """Every metric LearnedModule logs (what `trainer.monitor` may name), for these validation lengths."""
+    keys = {"loss", "train/loss", "val/loss"} | {f"train/{t}" for t in LOSS_TERMS} | {f"val/loss_{t}" for t in LOSS_TERMS}
+    keys |= {f"val/{m}" for m in VAL_METRICS}
+    keys |= {f"val/{m}_k{k}" for m in ("object_accuracy", "rmsd") for k in val_context_lengths}
+    return keys
 
 
 class LearnedModule(L.LightningModule):

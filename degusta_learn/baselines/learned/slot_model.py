@@ -49,6 +49,7 @@ from torch import nn
 
 from degusta_learn.baselines.learned.features import GEOM_DIM, Vocab, fourier
 from degusta_learn.baselines.learned.slots import SLOT_DIM, SLOT_FEATURES
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 
 N_FREQ = 4
@@ -61,17 +62,17 @@ CONTEXT = SLOT_FEATURES.index("k / 4")
 class ModelConfig:
     """The `model:` section of a learned train config."""
 
-    d_model: int = 128
+    d_model: int = bounded(128, 1, 8192)
     """Token width; larger fits more styles but trains slower."""
-    n_layers: int = 3
+    n_layers: int = bounded(3, 1, 128)
     """Transformer layers."""
-    n_heads: int = 4
+    n_heads: int = bounded(4, 1, 256)
     """Attention heads (must divide d_model)."""
-    d_ff: int = 256
+    d_ff: int = bounded(256, 1, 65_536)
     """Feed-forward width inside each layer."""
     dropout: float = 0.0
     """Dropout in the transformer."""
-    max_objects: int = 20
+    max_objects: int = bounded(20, 1, 1000)
     """Most objects one arrangement may have (and the most a prediction places)."""
     w_set: float = 1.0
     """Loss weight of the set / not-set classification per slot."""

@@ -18,12 +18,13 @@ import torch
 
 from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig, split_of
 from degusta_learn.baselines.learned.features import Vocab
-from degusta_learn.baselines.learned.module import KIND, LearnedModule, OptimConfig, population_pairs
+from degusta_learn.baselines.learned.module import KIND, LearnedModule, OptimConfig, monitor_keys, population_pairs
 from degusta_learn.baselines.learned.slot_model import ModelConfig
 from degusta_learn.baselines.learned.slots import SlotEncoder, population_rows
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import Dataset, load_dataset
-from degusta_learn.trainer import TrainerConfig, fit
+from degusta_learn.trainer import TrainerConfig, fit, training_run
 
 
 @dataclass
@@ -36,7 +37,7 @@ class LearnedTrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(run_name="learned"))
-    num_threads: int | None = 2
+    num_threads: int | None = bounded(2, 1, 4096)
     """CPU threads torch may use (null: torch's default; keep small on shared machines)."""
 
     def __post_init__(self):
@@ -57,8 +58,10 @@ def build(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> tuple[LearnedMo
 
 
 def train(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> Path:
-    """TrainerSpec.run of kind `learned`: train and return the run folder."""
+    """TrainerSpec.run of kind `learned`: train and return the run folder (seeded before the model is built)."""
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
-    module, dm = build(cfg, ds)
-    return fit(module, dm, cfg.trainer, full_config=cfg)
+    monitors = monitor_keys(cfg.data.val_context_lengths)
+    with training_run(cfg.trainer, monitors):
+        module, dm = build(cfg, ds)
+        return fit(module, dm, cfg.trainer, full_config=cfg, monitors=monitors)

@@ -19,8 +19,9 @@ Example:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 
 SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<image>"]
@@ -39,25 +40,25 @@ CHAT_TEMPLATE = (
 class BaseArchitecture:
     """The `model:` section of a pretrain config: sizes of the FastVLM built from random weights."""
 
-    image_size: int = 256
+    image_size: int = bounded(256, 32, 4096)
     """Pixels per (square) image side; lifted images are drawn at this size. image_size / 32 tokens per side."""
-    vision_channels: list[int] = field(default_factory=lambda: [32, 64, 128, 256])
+    vision_channels: list[int] = bounded(lo=1, hi=4096, factory=lambda: [32, 64, 128, 256])
     """Widths of the four ResNet stages (timm `resnet18` with these channels); the last is the feature size."""
-    vision_layers: list[int] = field(default_factory=lambda: [1, 1, 2, 1])
+    vision_layers: list[int] = bounded(lo=1, hi=64, factory=lambda: [1, 1, 2, 1])
     """Residual blocks per stage."""
-    vision_stem: int = 32
+    vision_stem: int = bounded(32, 1, 4096)
     """Width of the ResNet stem."""
-    text_hidden: int = 256
+    text_hidden: int = bounded(256, 1, 16_384)
     """Language model (Qwen2) width."""
-    text_layers: int = 4
+    text_layers: int = bounded(4, 1, 256)
     """Language model depth."""
-    text_heads: int = 4
+    text_heads: int = bounded(4, 1, 256)
     """Language model attention heads."""
-    text_kv_heads: int = 2
+    text_kv_heads: int = bounded(2, 1, 256)
     """Key/value heads (grouped-query attention)."""
-    text_intermediate: int = 768
+    text_intermediate: int = bounded(768, 1, 65_536)
     """Language model MLP width."""
-    vocab_size: int = 2048
+    vocab_size: int = bounded(2048, 1, 262_144)
     """BPE merges budget of the domain tokenizer (+ special tokens and answer literals)."""
 
     def __post_init__(self):

@@ -19,6 +19,15 @@ from degusta_learn.finetune.module import FinetuneModule
 GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain tokenizer) and the stop token
 
 
+def monitor_keys(cfg) -> set[str]:
+    """Every metric PerceptionModule logs under a PretrainConfig `cfg` (what `trainer.monitor` may name)."""
+    keys = {"train/loss"} | ({"train/dense"} if cfg.data.dense_weight > 0 else set())
+    if cfg.data.val_examples > 0:
+        keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
+                                      "mark_id", "parse_rate", "perception")}
+    return keys
+
+
 class PerceptionModule(FinetuneModule):
     """A full-weight VLM trained on perception questions (see the module docstring)."""
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.config import EvalConfig, GridConfig, OptimConfig
 from degusta_learn.finetune.pretrain.base import OUTPUT_STRIDE, BaseArchitecture
@@ -39,15 +40,15 @@ class PretrainData:
     """The labelled grid drawn over the scenes (the base learns this grid)."""
     mix: TaskMix = field(default_factory=TaskMix)
     """Which questions, how often."""
-    steps_per_epoch: int = 300
+    steps_per_epoch: int = bounded(300, 1, 10_000_000)
     """Training steps between validations (an epoch of fresh examples; last.ckpt is written at its end)."""
-    val_examples: int = 48
+    val_examples: int = bounded(48, 0, 1_000_000)
     """Held-out questions generated and scored at every validation."""
-    batch_size: int = 8
+    batch_size: int = bounded(8, 1, 4096)
     """Examples per step; a batch holds one task and one number of images (little padding)."""
-    max_length: int = 2048
+    max_length: int = bounded(2048, 1, 262_144)
     """Token budget of one example; longer is an error, never truncated."""
-    num_workers: int = 0
+    num_workers: int = bounded(0, 0, 256)
     """DataLoader worker processes rendering the scenes (0: in the main process)."""
     dense_weight: float = 0.05
     """Weight of the dense auxiliary loss on the image tokens (what covers each token, where it is); 0: off."""
@@ -68,7 +69,7 @@ class PretrainConfig:
     """Trainer name (TRAINERS)."""
     dataset: str | None = None
     """null: the embedded default catalog and tables; a dataset folder: its catalog.json and tables.json (its arrangements are never read)."""
-    seed: int = 0
+    seed: int = bounded(0, 0, 2**32 - 1)
     """Seed of the weights and of the example streams (validation uses seed + 1,000,003)."""
     model: BaseArchitecture = field(default_factory=BaseArchitecture)
     """Sizes of the FastVLM built from random weights."""
@@ -91,6 +92,12 @@ class PretrainConfig:
             raise DegustaError(f"model.image_size: {self.model.image_size} px gives {self.model.tokens_per_side} x "
                                f"{self.model.tokens_per_side} image tokens, fewer than the grid's {need} cells per "
                                f"side; use at least {need * OUTPUT_STRIDE} px (or a coarser data.grid)")
+        square = self.data.grid.rows == self.data.grid.cols == self.model.tokens_per_side
+        if self.data.dense_weight > 0 and not square:  # dense targets are per grid cell, one per image token
+            raise DegustaError(f"data.dense_weight: the dense loss needs one image token per grid cell, but "
+                               f"model.image_size {self.model.image_size} px gives {self.model.tokens_per_side} x "
+                               f"{self.model.tokens_per_side} tokens for a {self.data.grid.rows} x "
+                               f"{self.data.grid.cols} grid; set data.dense_weight=0 or match them")
 
 
 def catalog_and_tables(dataset: str | None):
@@ -159,39 +166,40 @@ def run(cfg: PretrainConfig) -> Path:
     from degusta_learn.finetune.module import FinetuneData
     from degusta_learn.finetune.pretrain.export import export_base
     from degusta_learn.finetune.pretrain.dense import DenseLabels
-    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.finetune.pretrain.module import PerceptionModule, monitor_keys
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
     from degusta_learn.render.grid import Grid
-    from degusta_learn.trainer import BEST, fit
+    from degusta_learn.trainer import BEST, fit, training_run
 
-    catalog, tables, root = catalog_and_tables(cfg.dataset)
-    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
-    run_dir = cfg.trainer.path
-    run_dir.mkdir(parents=True, exist_ok=True)
-    model, processor = load_vlm(str(initial_model(cfg, run_dir)), device="cpu", dtype="float32", key="model")
-    model.train()
-    fmt = chat_format(model, processor)
-    collator = Collator(processor, fmt, cfg.data.max_length, model.config.image_token_id)
-    d = cfg.data
-    steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
-    side = cfg.model.tokens_per_side
-    make = lambda seed, n, block: PerceptionExamples(catalog, tables, grid, cfg.model.image_size, seed, n,  # noqa: E731
-                                                     d.mix, block, root, label_side=side)
-    train = make(cfg.seed, (steps + d.steps_per_epoch) * d.batch_size, d.batch_size)
-    val = make(cfg.seed + 1_000_003, d.val_examples, 1)
-    labels = DenseLabels(catalog, side)
-    module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
-    data = FinetuneData(train, val, DenseCollate(collator, labels) if d.dense_weight > 0 else collator,
-                        d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
-                        val_collator=collator)
-    run_dir = fit(module, data, cfg.trainer, full_config=cfg)
-    if module.trainer is not None and not module.trainer.is_global_zero:
-        return Path(cfg.export)
-    best = run_dir / BEST
-    if best.is_file():  # export the best validation, not merely the last weights
-        state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
-        module.load_state_dict(state)
-    return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=module.global_step)
+    with training_run(cfg.trainer, monitor_keys(cfg)):  # checks trainer values, seeds before the model exists
+        catalog, tables, root = catalog_and_tables(cfg.dataset)
+        grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+        run_dir = cfg.trainer.path
+        run_dir.mkdir(parents=True, exist_ok=True)
+        model, processor = load_vlm(str(initial_model(cfg, run_dir)), device="cpu", dtype="float32", key="model")
+        model.train()
+        fmt = chat_format(model, processor)
+        collator = Collator(processor, fmt, cfg.data.max_length, model.config.image_token_id)
+        d = cfg.data
+        steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
+        side = cfg.model.tokens_per_side
+        make = lambda seed, n, block: PerceptionExamples(catalog, tables, grid, cfg.model.image_size, seed, n,  # noqa: E731
+                                                         d.mix, block, root)
+        train = make(cfg.seed, (steps + d.steps_per_epoch) * d.batch_size, d.batch_size)
+        val = make(cfg.seed + 1_000_003, d.val_examples, 1)
+        labels = DenseLabels(catalog, side)
+        module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
+        data = FinetuneData(train, val, DenseCollate(collator, labels) if d.dense_weight > 0 else collator,
+                            d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
+                            val_collator=collator)
+        run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
+        if module.trainer is not None and not module.trainer.is_global_zero:
+            return Path(cfg.export)
+        best = run_dir / BEST
+        if best.is_file():  # export the best validation, not merely the last weights
+            state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
+            module.load_state_dict(state)
+        return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=module.global_step)
 
 TRAINER = TrainerSpec(PretrainConfig, run, "pretrain a tiny base VLM from random weights on perception questions "
                       "about random scenes (never the preference task); exports a Hugging Face model folder")
