@@ -21,6 +21,12 @@ fails (`AnswerParseError(reason)`) when there is no list, it is not closed, it i
 (RecursionError, ValueError, OverflowError, TypeError, ...) also becomes an `AnswerParseError` with a
 short reason: model text never raises anything else.
 
+Structured outputs (`backend.structured_output: true`): the model answers the JSON object
+`{"objects": [<the same items>]}` constrained by `answer_schema(kind, catalog, grid)`, a JSON schema
+built from the same definitions this parser checks (keys, object types, catalog ids by type, grid cells,
+directions, [0, 1] positions). `read_answer` accepts that object (anywhere, in any mode) into the same
+items under the same item policy, and still reads a free-text list (a server that ignores the schema).
+
 Example:
     items = parse_answer(text, "grid", catalog, Grid(8, 8))       # valid items (bad ones dropped)
     answer = read_answer(text, "grid", catalog, Grid(8, 8))       # .items and .item_errors
@@ -56,6 +62,14 @@ MAX_CANDIDATES = 32
 """Most `[{` starts tried when looking for the answer list."""
 MAX_REASON_CHARS = 200
 _KEYS = {"grid": ("type", "id", "position", "cardinal_direction"), "unmarked": ("type", "id", "position", "rotation")}
+STRUCTURED_KEY = "objects"
+"""The key of the list in a structured answer `{"objects": [...]}` (providers want an object at top level)."""
+STRUCTURED_NAME = "degusta_answer"
+"""The schema's name (OpenAI `json_schema.name`, the Anthropic tool's name)."""
+MAX_ENUM_VALUES = 600
+"""Most enum values a schema lists (OpenAI strict allows 1,000 in all); past it, cells become a pattern
+and ids a [min, max] range (the item policy still drops what the looser schema lets through)."""
+_WRAPPER = re.compile(r"\{\s*['\"](" + STRUCTURED_KEY + r")['\"]\s*:", re.I)
 
 
 @dataclass
@@ -182,9 +196,20 @@ def _unescape(s: str) -> str:
 
 
 def _extract_list(text: str) -> list:
-    """The first `[...]` literal in the text whose items are dicts (or that is empty)."""
+    """The items of the first `{"objects": [...]}` object (a structured answer), else the first `[...]`
+    literal in the text whose items are dicts (or that is empty)."""
     fenced = [b for b in _FENCE.findall(text) if "[" in b]
     body = (fenced[0] if fenced else text).translate(_QUOTES)
+    for n, m in enumerate(_WRAPPER.finditer(body)):
+        if n >= MAX_CANDIDATES:
+            break
+        try:
+            value = _Parser(body, m.start()).value()
+        except AnswerParseError:
+            continue  # not a readable object: the list search below reports why
+        items = value.get(m.group(1)) if isinstance(value, dict) else None
+        if isinstance(items, list) and all(isinstance(v, dict) for v in items):
+            return items
     first_error = None
     for n, m in enumerate(re.finditer(r"\[\s*[{\]]", body)):
         if n >= MAX_CANDIDATES:
@@ -381,6 +406,75 @@ def _direction(value: Any, fail) -> str:
     if d not in DIRECTIONS:
         raise fail(f"unknown cardinal direction {_short(value)} (expected one of {', '.join(DIRECTIONS)})")
     return d
+
+
+# ----------------------------------------------------------------------------- the answer's JSON schema
+
+def answer_schema(kind: str, catalog: Catalog, grid: Grid | None = None) -> dict:
+    """The JSON schema of a structured answer `{"objects": [item, ...]}` (OpenAI strict-mode subset).
+
+    Built from the parser's own definitions: an item is one branch per object type (`anyOf`, the type
+    first as the discriminator) whose `id` enum holds only that type's catalog ids, so a schema-conforming
+    item is never "id 75 is a plate, not a cup"; grid items list cells of `grid` (enum) and one of the
+    8 `DIRECTIONS`, unmarked items a position [x, y] in [0, 1] and a rotation in [0, 360]. Every object
+    has `additionalProperties: false` and lists all its properties as required (strict mode's rules).
+    What no JSON schema says (an id given by two items) stays with the item policy: the later item is
+    dropped, the answer still parses. Deterministic for a given catalog and grid (it is part of the
+    cache key).
+    """
+    from degusta_learn.render.grid import DIRECTIONS, Grid
+
+    if kind not in KINDS:
+        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
+    grid = grid or Grid()
+    types = list(catalog.types)
+    ids = {t: sorted(o.id for o in catalog if o.type == t) for t in types}
+    n_cells = grid.rows * grid.cols
+    n_enum = len(types) + sum(len(v) for v in ids.values()) + (len(types) * len(DIRECTIONS) if kind == "grid" else 0)
+    cells_as_enum = kind == "grid" and n_enum + len(types) * n_cells <= MAX_ENUM_VALUES
+    ids_as_enum = n_enum + (len(types) * n_cells if cells_as_enum else 0) <= MAX_ENUM_VALUES
+    if kind == "grid":
+        if cells_as_enum:
+            cell = {"type": "string", "enum": [grid.cell_id(c, r) for r in range(grid.rows) for c in range(grid.cols)]}
+        else:
+            rows = "|".join(str(r) for r in range(grid.rows, 0, -1))
+            cell = {"type": "string", "pattern": f"^[A-{chr(ord('A') + grid.cols - 1)}](?:{rows})$"}
+        rest = {"position": {"type": "array", "items": cell, "minItems": 1, "maxItems": n_cells},
+                "cardinal_direction": {"type": "string", "enum": list(DIRECTIONS)}}
+    else:
+        rest = {"position": {"type": "array", "items": {"type": "number", "minimum": 0, "maximum": 1},
+                             "minItems": 2, "maxItems": 2},
+                "rotation": {"type": "number", "minimum": 0, "maximum": 360}}
+    branches = []
+    for t in types:
+        oid = ({"type": "integer", "enum": ids[t]} if ids_as_enum
+               else {"type": "integer", "minimum": min(ids[t]), "maximum": max(ids[t])})
+        props = {"type": {"type": "string", "enum": [t]}, "id": oid, **rest}
+        assert tuple(props) == _KEYS[kind]
+        branches.append({"type": "object", "properties": props, "required": list(props),
+                         "additionalProperties": False})
+    items = branches[0] if len(branches) == 1 else {"anyOf": branches}
+    return {"type": "object",
+            "properties": {STRUCTURED_KEY: {"type": "array", "items": items,
+                                            "description": "the objects to place, in placement order"}},
+            "required": [STRUCTURED_KEY], "additionalProperties": False}
+
+
+def format_answer_json(items: list[AnswerItem], kind: str) -> str:
+    """A structured answer as the JSON text a schema-constrained model emits (tests, replays)."""
+    import json
+
+    if kind not in KINDS:
+        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
+    out = []
+    for it in items:
+        if kind == "grid":
+            out.append({"type": it.type, "id": int(it.id), "position": list(it.cells or []),
+                        "cardinal_direction": it.direction})
+        else:
+            out.append({"type": it.type, "id": int(it.id), "position": [float(v) for v in it.position],
+                        "rotation": float(it.rotation)})
+    return json.dumps({STRUCTURED_KEY: out})
 
 
 # ----------------------------------------------------------------------------- formatting

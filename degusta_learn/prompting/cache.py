@@ -2,8 +2,8 @@
 
 Each sampled answer is stored under a key hashing everything that determines it: the backend settings
 that change answers (name, model, base_url, image detail, adapter, ...), the prompt (text parts in order
-and the SHA-256 of every encoded image), the sampling parameters (temperature, max_tokens, seed) and the
-sample index; a local model or adapter folder also contributes a fingerprint of its files, so a
+and the SHA-256 of every encoded image), the sampling parameters (temperature, max_tokens, seed), the
+JSON schema of a structured-output run (`backend.structured_output`) and the sample index; a local model or adapter folder also contributes a fingerprint of its files, so a
 retrained adapter at the same path does not hit stale answers. The answers of one request are committed
 (one transaction, synchronous=FULL) the moment the response is received, before anything parses them,
 so a killed run loses at most the requests in flight. The cache holds answer texts and token counts
@@ -67,11 +67,18 @@ def folder_fingerprint(path: str | None) -> str | None:
 
 
 def sample_keys(prompt: Prompt, backend: BackendConfig, temperature: float, max_tokens: int,
-                seed: int | None, n: int) -> list[str]:
-    """One cache key per sample index 0..n-1 (growing n keeps the first answers)."""
+                seed: int | None, n: int, schema: dict | None = None) -> list[str]:
+    """One cache key per sample index 0..n-1 (growing n keeps the first answers).
+
+    `schema`: the JSON schema a structured-output request sends (`backend.structured_output`); its
+    SHA-256 joins the key, so free-text and structured answers never mix and a changed schema (catalog,
+    grid) asks again. Free-text keys are what they always were (caches made before stay valid).
+    """
     base = {"backend": {f: getattr(backend, f) for f in ANSWER_FIELDS}, "prompt": prompt_digest(prompt),
             "temperature": temperature, "max_tokens": max_tokens, "seed": seed,
             "model_files": folder_fingerprint(backend.model), "adapter_files": folder_fingerprint(backend.adapter)}
+    if schema is not None:
+        base["structured_output"] = hashlib.sha256(json.dumps(schema, sort_keys=True).encode()).hexdigest()
     head = json.dumps(base, sort_keys=True)
     return [hashlib.sha256(f"{head}\0sample={i}".encode()).hexdigest() for i in range(n)]
 

@@ -43,7 +43,7 @@ def estimate_run(run, episodes: list) -> dict[str, Any]:
         prompt, keys = run.prompt(ep)
         hits = cache.get_many(keys) if cache else {}
         missing = len(keys) - len(hits)
-        tokens = prompt_tokens(prompt, cfg.backend.name, cfg.backend.detail)
+        tokens = prompt_tokens(prompt, cfg.backend.name, cfg.backend.detail) + run.schema_tokens
         per_prompt.append(tokens)
         requests = missing if run.per_sample else int(missing > 0)
         est["episodes_to_run"] += int(missing > 0)

@@ -98,7 +98,7 @@ def _check_method(method: str) -> None:
 
 
 def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Grid | int | None = None,
-                 image_format: str = "jpeg") -> Prompt:
+                 image_format: str = "jpeg", structured: bool = False) -> Prompt:
     """Build the prompt of `method` for one episode.
 
     Args:
@@ -108,6 +108,8 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
         renderer: a `render.lifting.Renderer` (its `size` sets the image size).
         grid: a `render.grid.Grid` (or an int n for n x n); required by logma / mogma, ignored otherwise.
         image_format: "jpeg" or "png" (also sets the file extension in the names).
+        structured: ask for the JSON object `{"objects": [...]}` instead of a python list
+            (`backend.structured_output`; the rest of the prompt is identical).
 
     Returns:
         The Prompt; `prompt.images` are in the order the text refers to them.
@@ -155,16 +157,18 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
     target_name = f"initial_state_1.{ext}"
     image(target_name, renderer.table(target.table, grid=grid if gridded else None))
     # 4. The task.
-    parts.append(task_text(method, names, target_name, grid, catalog.types))
+    parts.append(task_text(method, names, target_name, grid, catalog.types, structured=structured))
     return Prompt(method=method, parts=parts, episode=episode.id)
 
 
 def task_text(method: str, context_names: list[str], target_name: str, grid: Grid | None,
-              types: list[str]) -> str:
+              types: list[str], structured: bool = False) -> str:
     """The task paragraph: the paper's appendix prompt for the method's arrangement lifting.
 
     With no context images the first sentence (about preference images) is replaced by one that does
-    not refer to images that do not exist.
+    not refer to images that do not exist. With `structured` the answer-format sentences ask for the
+    JSON object `{"objects": [...]}` the schema of `answers.answer_schema` describes (same keys, same
+    meaning); every other sentence is unchanged.
     """
     _check_method(method)
     gridded = method in ("logma", "mogma")
@@ -184,16 +188,29 @@ def task_text(method: str, context_names: list[str], target_name: str, grid: Gri
                  f"{grid.rows} from the top; a grid cell id is the column letter followed by the row "
                  "number, e.g. C7. Please list all grid cells the object will intersect after it is placed. "
                  "Give the orientation as the closest cardinal direction [N, NE, E, SE, S, SW, W, NW] the "
-                 "object is pointing in after it is placed. The top of the image is N. Give your answer as "
-                 "a python list formatted as follows: [{'type': object_type, 'id': object_reference_id, "
-                 "'position': [grid_cell_ids], 'cardinal_direction': direction}]. Give grid_cell_ids as a "
-                 "list of string. ")
+                 "object is pointing in after it is placed. The top of the image is N. ")
+        item = ("{'type': object_type, 'id': object_reference_id, 'position': [grid_cell_ids], "
+                "'cardinal_direction': direction}")
+        text += _answer_format(item, structured) + "Give grid_cell_ids as a list of string. "
     else:
         text += ("Give a position in [x,y] where each value is a number between 0 and 1 (x from the left "
                  "edge, y from the top edge of the image). Give rotation as the number of degrees "
-                 "clockwise from image north. Give your answer as a python list formatted as follows: "
-                 "[{'type': object_type, 'id': object_reference_id, 'position': [x, y], "
-                 "'rotation': degrees}]. ")
+                 "clockwise from image north. ")
+        text += _answer_format("{'type': object_type, 'id': object_reference_id, 'position': [x, y], "
+                               "'rotation': degrees}", structured)
     text += (f"object_type is one of {', '.join(types)}. Give object_id as an integer. List the objects in "
-             "the order I should place them. Include only this list in your response.")
+             "the order I should place them. ")
+    text += ("Include only this JSON object in your response." if structured
+             else "Include only this list in your response.")
     return text
+
+
+def _answer_format(item: str, structured: bool) -> str:
+    """The sentence giving the answer's format: the paper's python list, or the structured JSON object."""
+    if not structured:
+        return f"Give your answer as a python list formatted as follows: [{item}]. "
+    from degusta_learn.prompting.answers import STRUCTURED_KEY
+
+    item = item.replace("'", '"')
+    return f'Give your answer as a JSON object formatted as follows: {{"{STRUCTURED_KEY}": [{item}]}}. '
+

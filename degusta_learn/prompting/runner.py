@@ -25,6 +25,8 @@ server fault: its samples are counted failures of that episode, as unparseable a
 
 from __future__ import annotations
 
+import json
+import math
 import random
 import threading
 import time
@@ -38,13 +40,13 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.prompting.aggregate import aggregate
-from degusta_learn.prompting.answers import AnswerParseError, answer_kind, read_answer
+from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, read_answer
 from degusta_learn.prompting.backends.base import (
     BackendConfig, BackendError, Completion, make_backend, redact, redact_json,
 )
 from degusta_learn.prompting.backends.openai import is_local
 from degusta_learn.prompting.cache import ResponseCache, sample_keys
-from degusta_learn.prompting.costs import BudgetExceeded, Ledger, cost, price
+from degusta_learn.prompting.costs import CHARS_PER_TOKEN, BudgetExceeded, Ledger, cost, price
 from degusta_learn.prompting.estimate import estimate_run, output_tokens_per_sample, print_estimate
 from degusta_learn.prompting.prompt import IMAGE_FORMATS, Prompt, build_prompt
 from degusta_learn.scene import Dataset, Episode, Prediction
@@ -153,12 +155,17 @@ class ZeroShotRun:
         self.price = None if local and cfg.backend.model not in cfg.prices else price(cfg.backend.model, cfg.prices)
         self.per_sample = cfg.backend.name in PER_SAMPLE_BACKENDS
         self.est_out = cfg.est_output_tokens or output_tokens_per_sample(ds, self.kind, self.grid)
+        # structured outputs: the schema the backend sends (it builds the same one from grid + catalog)
+        self.schema = answer_schema(self.kind, ds.catalog, self.grid) if cfg.backend.structured_output else None
+        self.schema_tokens = 0 if self.schema is None else math.ceil(len(json.dumps(self.schema)) / CHARS_PER_TOKEN)
         self.stop = threading.Event()
 
     def prompt(self, ep: Episode) -> tuple[Prompt, list[str]]:
         c = self.cfg
-        prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format)
-        return prompt, sample_keys(prompt, c.backend, c.temperature, c.backend.max_tokens, c.seed, c.n)
+        prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
+                              structured=c.backend.structured_output)
+        return prompt, sample_keys(prompt, c.backend, c.temperature, c.backend.max_tokens, c.seed, c.n,
+                                   schema=self.schema)
 
     # ------------------------------------------------------------------------- requests
 
@@ -176,7 +183,8 @@ class ZeroShotRun:
         from degusta_learn.prompting.costs import prompt_tokens
 
         c = self.cfg
-        est_in = prompt_tokens(prompt, c.backend.name, c.backend.detail) * (k if self.per_sample else 1)
+        est_in = (prompt_tokens(prompt, c.backend.name, c.backend.detail) + self.schema_tokens) * (
+            k if self.per_sample else 1)
         est_out = self.est_out * k
         est_usd = cost(self.price, est_in, est_out)
         for attempt in range(c.max_retries + 1):
@@ -386,6 +394,7 @@ class ZeroShotRun:
         diags = [p.diagnostics for p in results.values()]
         atomic_write_json(self.ledger_path, redact_json({
             "method": c.method, "backend": c.backend.name, "model": c.backend.model, "base_url": c.backend.base_url,
+            "structured_output": c.backend.structured_output,
             "n": c.n, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),
             "episodes_unanswered": len(unanswered), "stopped": stopped,

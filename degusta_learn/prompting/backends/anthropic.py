@@ -4,6 +4,11 @@ The Messages API returns one answer per request, so n samples are n requests (as
 table). Images go as base64 blocks, interleaved with the text parts. The key comes from the
 environment variable `api_key_env` (default ANTHROPIC_API_KEY); `base_url` points at a proxy if set.
 
+With `structured_output: true` the answer's JSON schema goes as the input schema of one tool the model is
+forced to call (`tools=[{"name": "degusta_answer", "description", "input_schema"}]`,
+`tool_choice={"type": "tool", "name": "degusta_answer"}`); the answer is that tool_use block's `input`,
+kept as JSON text. A reply without the tool call (a proxy that drops tools) is read from its text.
+
 Example:
     backend = AnthropicBackend.from_config(BackendConfig(name="anthropic", model="claude-3-haiku-20240307"))
 """
@@ -11,9 +16,12 @@ Example:
 from __future__ import annotations
 
 import base64
+import contextlib
+import json
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.answers import STRUCTURED_KEY, STRUCTURED_NAME
+from degusta_learn.prompting.backends.base import AnswerSchemas, BackendConfig, BackendError, Completion, api_key
 from degusta_learn.prompting.backends.openai import retry_after
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
@@ -32,15 +40,16 @@ class AnthropicBackend:
 
     name = "anthropic"
 
-    def __init__(self, model: str, client):
+    def __init__(self, model: str, client, schemas: AnswerSchemas | None = None):
         self.model, self.client = model, client
+        self.schemas = schemas  # set: structured outputs (a forced tool whose input schema is the answer's)
 
     @classmethod
     def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> AnthropicBackend:
         key = api_key(cfg)
         anthropic = _import()
         client = anthropic.Anthropic(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
-        return cls(cfg.model, client)
+        return cls(cfg.model, client, AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     @staticmethod
     def content(prompt: Prompt) -> list[dict]:
@@ -59,11 +68,12 @@ class AnthropicBackend:
         if not 0.0 <= temperature <= 1.0:
             raise BackendError(f"anthropic: temperature must be in [0, 1], got {temperature}", fatal=True)
         messages = [{"role": "user", "content": self.content(prompt)}]
+        extra = tool_request(self.schemas(prompt)) if self.schemas is not None else {}
         out = []
         for _ in range(n):
             try:
                 resp = self.client.messages.create(model=self.model, max_tokens=max_tokens,
-                                                   temperature=temperature, messages=messages)
+                                                   temperature=temperature, messages=messages, **extra)
             except anthropic.APIStatusError as e:
                 status = e.status_code
                 msg = f"anthropic: HTTP {status} from {self.model}: {str(e)[:300]}"
@@ -76,8 +86,30 @@ class AnthropicBackend:
                 if out:
                     break
                 raise BackendError(f"anthropic: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
-            text = "".join(getattr(b, "text", "") for b in resp.content)
+            text = answer_text(resp.content)
             usage = getattr(resp, "usage", None)
             out.append(Completion(text=text, input_tokens=getattr(usage, "input_tokens", None),
                                   output_tokens=getattr(usage, "output_tokens", None)))
         return out
+
+
+def tool_request(schema: dict) -> dict:
+    """The forced-tool fields of a Messages request whose answer must follow `schema`."""
+    return {"tools": [{"name": STRUCTURED_NAME, "input_schema": schema,
+                       "description": "Give the table-setting plan: the objects to place, in placement order."}],
+            "tool_choice": {"type": "tool", "name": STRUCTURED_NAME}}
+
+
+def answer_text(blocks) -> str:
+    """The answer in a response's content blocks: the forced tool call's input as JSON text, else the text."""
+    for b in blocks or []:
+        if getattr(b, "type", None) == "tool_use" and getattr(b, "name", None) == STRUCTURED_NAME:
+            value = getattr(b, "input", None)
+            if isinstance(value, dict) and isinstance(value.get(STRUCTURED_KEY), str):
+                with contextlib.suppress(ValueError):  # a model that wrote the list as a JSON string
+                    value = {**value, STRUCTURED_KEY: json.loads(value[STRUCTURED_KEY])}
+            try:
+                return json.dumps(value)
+            except (TypeError, ValueError):
+                return str(value)
+    return "".join(t for b in blocks or [] if isinstance(t := getattr(b, "text", ""), str))

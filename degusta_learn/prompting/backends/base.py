@@ -34,6 +34,8 @@ BACKENDS: dict[str, str] = {
     "hf": "degusta_learn.prompting.backends.hf:HFBackend",
     "replay": "degusta_learn.prompting.backends.replay:ReplayBackend",
 }
+STRUCTURED_BACKENDS = ("openai", "anthropic", "gemini", "replay")
+"""Backends that take `structured_output: true` (replay ignores it: recorded answers of both kinds parse)."""
 DEFAULT_KEY_ENV = {"openai": "OPENAI_API_KEY", "anthropic": "ANTHROPIC_API_KEY", "gemini": "GEMINI_API_KEY"}
 
 
@@ -87,6 +89,10 @@ class BackendConfig:
     """hf only: the processor's image size budget (unset: the model's default)."""
     path: str | None = None
     """replay only: the JSONL file of recorded answers."""
+    structured_output: bool = False
+    """Force the answer to a JSON schema (`{"objects": [...]}`; openai json_schema strict, anthropic forced
+    tool, gemini response_schema). Default false: the paper's free-text answers. hf: not available (use
+    `constrained`); replay: ignored (recorded answers of either kind parse)."""
 
     def __post_init__(self):
         if self.name not in BACKENDS:
@@ -97,6 +103,11 @@ class BackendConfig:
             raise DegustaError(f"backend.timeout: expected > 0, got {self.timeout}")
         if self.detail not in (None, "low", "high", "auto"):
             raise DegustaError(f"backend.detail: expected low, high or auto, got {self.detail!r}")
+        if self.structured_output and self.name not in STRUCTURED_BACKENDS:
+            hint = (" (the hf backend constrains decoding itself: set backend.constrained: true)"
+                    if self.name == "hf" else "")
+            raise DegustaError(f"backend.structured_output: the {self.name} backend takes no JSON schema; "
+                               f"it works with {', '.join(STRUCTURED_BACKENDS)}{hint}")
 
     @property
     def key_env(self) -> str | None:
@@ -161,6 +172,25 @@ def api_key(cfg: BackendConfig, required: bool = True) -> str | None:
         raise DegustaError(f"backend.api_key_env: environment variable {env} is not set "
                            f"(export {env}=... ; keys are never read from config files)")
     return value or None
+
+
+class AnswerSchemas:
+    """The JSON schema of a prompt's answer (`answers.answer_schema`), built once per answer kind: what a
+    structured-output backend sends with every request (the runner builds the same one for cache keys)."""
+
+    def __init__(self, grid=None, catalog=None):
+        self.grid, self.catalog, self._schemas = grid, catalog, {}
+
+    def __call__(self, prompt: Prompt) -> dict:
+        from degusta_learn.prompting.answers import answer_kind, answer_schema
+
+        if self.catalog is None:
+            raise DegustaError("backend.structured_output: the answer schema needs the dataset catalog "
+                               "(build the backend with make_backend(cfg, grid, catalog))")
+        kind = answer_kind(prompt.method)
+        if kind not in self._schemas:
+            self._schemas[kind] = answer_schema(kind, self.catalog, self.grid)
+        return self._schemas[kind]
 
 
 def make_backend(cfg: BackendConfig, grid=None, catalog=None) -> Backend:

@@ -3,6 +3,11 @@
 The client is imported lazily, so the rest of the toolkit works without it; n samples are n requests
 (as in the paper). The key comes from the environment variable `api_key_env` (default GEMINI_API_KEY).
 
+With `structured_output: true` the config carries `response_mime_type="application/json"` and
+`response_schema` (sent as `generationConfig.responseMimeType` / `responseSchema`): the answer's JSON
+schema in Gemini's OpenAPI subset (`gemini_schema`: no additionalProperties, integer enums written as
+`format: enum` strings, `propertyOrdering` for the key order).
+
 Example:
     backend = GeminiBackend.from_config(BackendConfig(name="gemini", model="gemini-1.5-pro"))
 """
@@ -10,7 +15,7 @@ Example:
 from __future__ import annotations
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.base import AnswerSchemas, BackendConfig, BackendError, Completion, api_key
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -34,8 +39,9 @@ class GeminiBackend:
 
     name = "gemini"
 
-    def __init__(self, model: str, client):
+    def __init__(self, model: str, client, schemas: AnswerSchemas | None = None):
         self.model, self.client = model, client
+        self.schemas = schemas  # set: structured outputs (response_mime_type + response_schema)
 
     @classmethod
     def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> GeminiBackend:
@@ -43,14 +49,18 @@ class GeminiBackend:
         genai, types, _ = _import()
         options = types.HttpOptions(base_url=cfg.base_url, timeout=int(cfg.timeout * 1000)) if cfg.base_url \
             else types.HttpOptions(timeout=int(cfg.timeout * 1000))
-        return cls(cfg.model, genai.Client(api_key=key, http_options=options))
+        return cls(cfg.model, genai.Client(api_key=key, http_options=options),
+                   AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
                  seed: int | None = None) -> list[Completion]:
         _, types, errors = _import()
         contents = [types.Part.from_bytes(data=p.encode(), mime_type=p.mime) if isinstance(p, ImagePart)
                     else types.Part.from_text(text=p) for p in prompt.parts]
-        config = types.GenerateContentConfig(temperature=temperature, max_output_tokens=max_tokens, seed=seed)
+        structured = {} if self.schemas is None else {
+            "response_mime_type": "application/json", "response_schema": gemini_schema(self.schemas(prompt))}
+        config = types.GenerateContentConfig(temperature=temperature, max_output_tokens=max_tokens, seed=seed,
+                                             **structured)
         out = []
         for _ in range(n):
             try:
@@ -71,3 +81,27 @@ class GeminiBackend:
             out.append(Completion(text=resp.text or "", input_tokens=getattr(usage, "prompt_token_count", None),
                                   output_tokens=getattr(usage, "candidates_token_count", None)))
         return out
+
+
+def gemini_schema(schema: dict) -> dict:
+    """A JSON schema (answers.answer_schema) in the OpenAPI subset of Gemini's `responseSchema`: object
+    keys kept in order (`propertyOrdering`), `additionalProperties` dropped (Gemini adds no keys), integer
+    enums written as `{"type": "integer", "format": "enum", "enum": ["0", "1", ...]}` (Gemini's enums are
+    strings)."""
+    if isinstance(schema, list):
+        return [gemini_schema(s) for s in schema]
+    if not isinstance(schema, dict):
+        return schema
+    out = {}
+    for k, v in schema.items():
+        if k == "additionalProperties":
+            continue
+        if k == "properties":
+            out[k] = {name: gemini_schema(sub) for name, sub in v.items()}
+            out["propertyOrdering"] = list(v)
+        elif k == "enum" and schema.get("type") in ("integer", "number"):
+            out["format"] = "enum"
+            out[k] = [str(x) for x in v]
+        else:
+            out[k] = gemini_schema(v)
+    return out

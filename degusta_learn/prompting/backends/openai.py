@@ -10,6 +10,12 @@ The key comes from the environment variable `api_key_env` (default OPENAI_API_KE
 api.openai.com only). Any other `base_url` gets a key only when `api_key_env` names its variable, so a
 local server runs without one and your OpenAI key never reaches a third-party endpoint.
 
+With `structured_output: true` every request carries the answer's JSON schema as
+`response_format={"type": "json_schema", "json_schema": {"name": "degusta_answer", "strict": true,
+"schema": ...}}` (OpenAI Structured Outputs; vLLM, SGLang and Ollama take the same field). A server that
+ignores it and answers free text is parsed as usual; one that refuses it (HTTP 400 naming the schema)
+stops the run with one line naming `backend.structured_output`.
+
 Example:
     backend = OpenAIBackend.from_config(BackendConfig(model="gpt-4o"))
     backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
@@ -23,7 +29,8 @@ import math
 import time
 from urllib.parse import urlparse
 
-from degusta_learn.prompting.backends.base import BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.answers import STRUCTURED_NAME
+from degusta_learn.prompting.backends.base import AnswerSchemas, BackendConfig, BackendError, Completion, api_key
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1", "0.0.0.0")
@@ -72,8 +79,9 @@ class OpenAIBackend:
 
     name = "openai"
 
-    def __init__(self, model: str, client, detail: str | None = None):
+    def __init__(self, model: str, client, detail: str | None = None, schemas: AnswerSchemas | None = None):
         self.model, self.client, self.detail = model, client, detail
+        self.schemas = schemas  # set: structured outputs (response_format json_schema, strict)
         self.max_tokens_key = "max_tokens"
 
     @classmethod
@@ -85,7 +93,8 @@ class OpenAIBackend:
         official = cfg.base_url is None or (urlparse(cfg.base_url).hostname or "").endswith("api.openai.com")
         key = (api_key(cfg) if cfg.api_key_env or official else None) or "not-needed"
         client = openai.OpenAI(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
-        return cls(cfg.model, client, cfg.detail)
+        return cls(cfg.model, client, cfg.detail,
+                   AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     def messages(self, prompt: Prompt) -> list[dict]:
         content = []
@@ -107,6 +116,8 @@ class OpenAIBackend:
                   self.max_tokens_key: max_tokens}
         if seed is not None:
             kwargs["seed"] = seed
+        if self.schemas is not None:
+            kwargs["response_format"] = response_format(self.schemas(prompt))
         try:
             try:
                 resp = self.client.chat.completions.create(**kwargs)
@@ -123,6 +134,10 @@ class OpenAIBackend:
                 raise BackendError(msg + " (check the API key variable)", fatal=True, status=status) from None
             if status == 404:
                 raise BackendError(msg + " (unknown model or endpoint?)", fatal=True, status=status) from None
+            if status in (400, 422) and self.schemas is not None and _about_schema(msg):
+                raise BackendError(f"backend.structured_output: the server refused the JSON schema ({msg}); "
+                                   "enable structured outputs on the server (docs/prompting.md) or set "
+                                   "backend.structured_output=false", fatal=True, status=status) from None
             raise BackendError(msg, retryable=status in (408, 409, 429) or status >= 500,
                                retry_after=retry_after(e.response.headers), status=status) from None
         except openai.APITimeoutError:
@@ -135,6 +150,16 @@ class OpenAIBackend:
             raise BackendError(f"openai: {self.model} answered with a malformed body ({type(e).__name__}); "
                                "retrying", retryable=True) from None
         return completions(resp, self.model)
+
+
+def response_format(schema: dict) -> dict:
+    """OpenAI's structured-output request field for `schema` (strict: the model cannot leave it)."""
+    return {"type": "json_schema", "json_schema": {"name": STRUCTURED_NAME, "strict": True, "schema": schema}}
+
+
+def _about_schema(message: str) -> bool:
+    m = message.lower()
+    return any(w in m for w in ("response_format", "json_schema", "schema", "guided", "structured", "grammar"))
 
 
 def completions(resp, model: str) -> list[Completion]:
@@ -156,6 +181,8 @@ def completions(resp, model: str) -> list[Completion]:
                 raise TypeError("a choice without a message")
             message = c.message
             text = getattr(message, "content", None) if message is not None else None
+            if text is None and message is not None:  # a structured-output refusal: kept as the answer text
+                text = getattr(message, "refusal", None)
             out.append(Completion(text=_text(text), input_tokens=i, output_tokens=o))
         return out
     except BackendError:
