@@ -111,3 +111,17 @@ def test_prices_and_image_tokens():
     ledger = Ledger(price("gpt-4o-2024-05-13"))
     ledger.record(8035, 6250, 5, fallback=(0, 0))
     assert ledger.summary()["cost_usd"] == pytest.approx(0.040175 + 0.09375)
+
+
+def test_anthropic_temperature_reaches_clients_with_and_without_the_keyword():
+    """anthropic 2.x dropped `temperature` from messages.create: it then travels in extra_body."""
+    from degusta_learn.prompting.backends.anthropic import sampling_arguments
+
+    def old_create(*, model, max_tokens, messages, temperature=1.0, **kw):
+        return None
+
+    def new_create(*, model, max_tokens, messages, extra_body=None, **kw):
+        return None
+
+    assert sampling_arguments(old_create, 0.3) == {"temperature": 0.3}
+    assert sampling_arguments(new_create, 0.3) == {"extra_body": {"temperature": 0.3}}

@@ -69,11 +69,12 @@ class AnthropicBackend:
             raise BackendError(f"anthropic: temperature must be in [0, 1], got {temperature}", fatal=True)
         messages = [{"role": "user", "content": self.content(prompt)}]
         extra = tool_request(self.schemas(prompt)) if self.schemas is not None else {}
+        extra.update(sampling_arguments(self.client.messages.create, temperature))
         out = []
         for _ in range(n):
             try:
-                resp = self.client.messages.create(model=self.model, max_tokens=max_tokens,
-                                                   temperature=temperature, messages=messages, **extra)
+                resp = self.client.messages.create(model=self.model, max_tokens=max_tokens, messages=messages,
+                                                   **extra)
             except anthropic.APIStatusError as e:
                 status = e.status_code
                 msg = f"anthropic: HTTP {status} from {self.model}: {str(e)[:300]}"
@@ -91,6 +92,18 @@ class AnthropicBackend:
             out.append(Completion(text=text, input_tokens=getattr(usage, "input_tokens", None),
                                   output_tokens=getattr(usage, "output_tokens", None)))
         return out
+
+
+def sampling_arguments(create, temperature: float) -> dict:
+    """`temperature` as the installed client takes it: a keyword up to anthropic 1.x; 2.x dropped the
+    keyword from `messages.create`, so it travels in the request body (`extra_body`) as the API reads it."""
+    import inspect
+
+    try:
+        takes = "temperature" in inspect.signature(create).parameters
+    except (TypeError, ValueError):  # a callable without a signature: pass it the usual way
+        takes = True
+    return {"temperature": temperature} if takes else {"extra_body": {"temperature": temperature}}
 
 
 def tool_request(schema: dict) -> dict:
