@@ -54,7 +54,12 @@ def cmd_predict(args) -> str:
 def cmd_train(args) -> str:
     from degusta_learn.methods import run_train
 
-    return f"training finished; outputs in {run_train(args.config, args.set)}"
+    from degusta_learn.trainer import global_rank
+
+    out = run_train(args.config, args.set, dry_run=args.dry_run)
+    if global_rank() != 0:  # the other processes of a multi-process run say nothing (rank 0 reports)
+        return ""
+    return f"training finished; outputs in {out}" if out else "dry run: nothing loaded, trained or written"
 
 
 def cmd_evaluate(args) -> str:
@@ -93,8 +98,35 @@ def cmd_quickstart(args) -> str:
     return f"quickstart finished: open {report / 'report.md'} (or {report / 'report.html'} in a browser)"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the toolkit's error line: `degusta: error: ...` (one line, exit 2), not a usage dump."""
+
+    def error(self, message: str):
+        self.exit(2, f"degusta: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _int_in(lo: int, hi: int) -> Callable[[str], int]:
+    """An argparse type: an integer in [lo, hi] (a seed, a size, a count), checked before anything runs."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text[:40]!r}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"expected an integer from {lo} to {hi}, got {text[:40]}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+SEED = _int_in(0, 2**32 - 1)
+IMAGE_SIZE = _int_in(16, 4096)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="degusta", description="Personalized table setting: data, "
+    parser = _Parser(prog="degusta", description="Personalized table setting: data, "
                                      "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.")
     verbs = parser.add_subparsers(dest="verb", required=True)
 
@@ -102,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = data.add_parser("generate", help="write an embedded synthetic dataset")
     p.add_argument("name", choices=["naturalistic", "simulated"])
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing dataset folder that degusta generated (nothing else is ever deleted)")
     p.set_defaults(func=cmd_data_generate)
@@ -113,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("dir", type=Path)
     p.add_argument("--context", type=int, choices=[0, 2, 4], required=True)
     p.add_argument("--split", default="test", choices=["train", "val", "test", "all"])
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--out", required=True, type=Path)
     p.set_defaults(func=cmd_data_episodes)
 
@@ -126,6 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = verbs.add_parser("train", help="train a learned baseline or fine-tune a VLM from a YAML config")
     p.add_argument("--config", required=True, type=Path)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--dry-run", action="store_true", help="print model size, trainable parameters, tokens per "
+                   "example vs data.max_length, steps per epoch and predicted memory; load and write nothing")
     p.set_defaults(func=cmd_train)
 
     p = verbs.add_parser("evaluate", help="predictions -> metrics.json, per_episode.csv, report.md")
@@ -133,8 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--predictions", required=True, type=Path, nargs="+")
     p.add_argument("--episodes", type=Path, help="the episode set the predictions must cover (optional)")
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap resamples for the intervals")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--bootstrap", type=_int_in(1, 1_000_000), default=1000, help="bootstrap resamples for the intervals")
+    p.add_argument("--seed", type=SEED, default=0)
     p.set_defaults(func=cmd_evaluate)
 
     p = verbs.add_parser("compare", help="several methods on the same episodes -> one report folder")
@@ -147,18 +181,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = render.add_parser("episode", help="an episode's context/target images, object sheets and prompt texts")
     p.add_argument("dataset", type=Path)
     p.add_argument("--participant", required=True)
-    p.add_argument("--target", type=int, required=True, help="the target trial")
-    p.add_argument("--context", type=int, required=True, help="context length (e.g. 0, 2, 4)")
+    p.add_argument("--target", type=_int_in(0, 999_999_999), required=True, help="the target trial")
+    p.add_argument("--context", type=_int_in(0, 1000), required=True, help="context length (e.g. 0, 2, 4)")
     p.add_argument("--method", required=True, choices=["louma", "logma", "mouma", "mogma"])
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--size", type=int, default=448, help="image size in pixels")
-    p.add_argument("--grid", type=int, default=8, help="grid rows = columns for logma/mogma")
-    p.add_argument("--seed", type=int, default=0, help="episode seed (as in degusta data episodes)")
+    p.add_argument("--size", type=IMAGE_SIZE, default=448, help="image size in pixels")
+    p.add_argument("--grid", type=_int_in(1, 26), default=8, help="grid rows = columns for logma/mogma")
+    p.add_argument("--seed", type=SEED, default=0, help="episode seed (as in degusta data episodes)")
     p.set_defaults(func=cmd_render_episode)
     p = render.add_parser("catalog", help="a contact sheet of the whole catalog")
     p.add_argument("dataset", type=Path)
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--size", type=int, default=448, help="pixels per object-type sheet")
+    p.add_argument("--size", type=IMAGE_SIZE, default=448, help="pixels per object-type sheet")
     p.set_defaults(func=cmd_render_catalog)
 
     p = verbs.add_parser("quickstart", help="the main job on the embedded default (CPU, about 6 minutes)")
@@ -171,12 +205,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # a flag error (one line printed) or --help: the status, not an exception
+        return e.code if isinstance(e.code, int) else 2
     func: Callable = args.func
     try:
         message = func(args)
     except DegustaError as e:
-        print(f"degusta: error: {e}", file=sys.stderr)
+        from degusta_learn.prompting.backends.base import redact
+
+        print(f"degusta: error: {redact(str(e))}", file=sys.stderr)  # a key pasted into a config never echoes
         return 2
     except KeyboardInterrupt:
         print("degusta: interrupted; finished work is kept (re-run to resume)", file=sys.stderr)

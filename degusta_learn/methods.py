@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from degusta_learn.config import apply_overrides, from_dict, read_yaml
+from degusta_learn.config import _show, apply_overrides, from_dict, read_yaml, seed_field
 from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import check_output_file
 from degusta_learn.scene import (
     CONTEXT_LENGTHS,
     Dataset,
@@ -44,15 +45,18 @@ class PredictConfig:
     """Where predictions.jsonl is written."""
     episodes: str | None = None
     """An episodes.jsonl file; if unset, episodes are built from `context` and `split`."""
-    context: int = 4
-    """Context length (0, 2 or 4) when `episodes` is unset."""
+    context: int | None = 4
+    """Context length (0, 2 or 4). With `episodes`, the file must hold episodes of this length (null: any)."""
     split: str = "test"
     """Participant split (train, val, test, all) when `episodes` is unset."""
-    seed: int = 0
-    """Seed of the split and of any sampling the method does."""
+    seed: int = seed_field(0)
+    """Seed of the split and of any sampling the method does (0 .. 2**32 - 1)."""
 
     def __post_init__(self):
-        if self.context not in CONTEXT_LENGTHS:
+        if self.context is None and not self.episodes:
+            raise DegustaError("context: null is only allowed with an episodes file; expected one of "
+                               f"{list(CONTEXT_LENGTHS)}")
+        if self.context is not None and self.context not in CONTEXT_LENGTHS:
             raise DegustaError(f"context: expected one of {list(CONTEXT_LENGTHS)}, got {self.context}")
 
 
@@ -72,6 +76,8 @@ class TrainerSpec:
     config_cls: type
     run: Callable[[Any], Path]
     description: str = ""
+    dry_run: Callable[..., None] | None = None
+    """(config, log) -> None: print sizes, token budget, steps and memory; load no weights, write nothing."""
 
 
 METHODS: dict[str, str] = {
@@ -95,6 +101,10 @@ TRAINERS: dict[str, str] = {
 
 
 def _load(registry: dict[str, str], name: Any, what: str, key: str):
+    # `name` comes raw from the YAML (before the dataclass check): a list or number must not reach `in`.
+    if not isinstance(name, str):
+        raise DegustaError(f"{key}: expected the name of a {what} (one of {', '.join(sorted(registry))}), "
+                           f"got {_show(name)}")
     if name not in registry:
         raise DegustaError(f"{key}: unknown {what} {name!r} (known: {', '.join(sorted(registry))})")
     module, attr = registry[name].split(":")
@@ -111,7 +121,16 @@ def get_trainer(name: str) -> TrainerSpec:
 
 def resolve_episodes(cfg: PredictConfig, ds: Dataset) -> list[Episode]:
     if cfg.episodes:
-        return read_episodes(cfg.episodes, ds)
+        episodes = read_episodes(cfg.episodes, ds)
+        lengths = sorted({len(e.context) for e in episodes})
+        # A file of one length must match `context` (else `context` would be silently ignored); a mixed
+        # file (e.g. quickstart's 0/2/4 set) must at least contain it. `context: null` takes any file.
+        if cfg.context is not None and cfg.context not in lengths:
+            raise DegustaError(
+                f"context: {cfg.context} contradicts episodes: {cfg.episodes} holds episodes of context length "
+                f"{', '.join(map(str, lengths))}; set context to {lengths[0] if len(lengths) == 1 else 'null'} "
+                "or unset episodes")
+        return episodes
     return make_episodes(ds, cfg.context, cfg.split, cfg.seed)
 
 
@@ -126,6 +145,34 @@ def build_config(path: str | Path | None, overrides: list[str] | None, key: str,
     except DegustaError as e:
         raise DegustaError(f"{where}: {e}") from None
     return spec, from_dict(spec.config_cls, raw, where=where)
+
+
+_NOT_PATHS = ("out", "method", "split", "dataset")
+
+
+def _config_files(cfg: Any) -> list[tuple[str, str]]:
+    """(what, path) of every existing file a config value names (episodes, checkpoint, cache, ...)."""
+    found: list[tuple[str, str]] = []
+
+    def walk(value: Any, key: str) -> None:
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            for f in dataclasses.fields(value):
+                walk(getattr(value, f.name), f"{key}.{f.name}" if key else f.name)
+        elif isinstance(value, dict):
+            for k, v in value.items():
+                walk(v, f"{key}.{k}" if key else str(k))
+        elif isinstance(value, (list, tuple)):
+            for i, v in enumerate(value):
+                walk(v, f"{key}[{i}]")
+        elif isinstance(value, str) and key not in _NOT_PATHS and value.strip() and len(value) < 4096:
+            try:
+                if Path(value).is_file():
+                    found.append((f"the file of config key '{key}'", value))
+            except (OSError, ValueError):
+                pass
+
+    walk(cfg, "")
+    return found
 
 
 def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry_run: bool = False,
@@ -151,6 +198,8 @@ def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry
             log(f"dry run: method {cfg.method!r} calls no paid API; it would predict {n} episodes into {cfg.out}")
             return None
     spec, cfg = build_config(path, overrides, "method", get_method)
+    # refuse an `out` that would replace an input or cannot be written, before any (paid) work
+    check_output_file(cfg.out, [("the config file", path), *_config_files(cfg)], key="out", datasets=[cfg.dataset])
     ds = load_dataset(cfg.dataset)
     episodes = resolve_episodes(cfg, ds)
     predictions = spec.run(cfg, ds, episodes)
@@ -164,7 +213,18 @@ def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry
     return out
 
 
-def run_train(path: str | Path | None, overrides: list[str] | None = None) -> Path:
-    """`degusta train`: build the configured trainer and run it; returns its output folder."""
+def run_train(path: str | Path | None, overrides: list[str] | None = None, dry_run: bool = False,
+              log=print) -> Path | None:
+    """`degusta train`: build the configured trainer and run it; returns its output folder.
+
+    With `dry_run`, the trainer kind's `dry_run` prints the model size, trainable parameters, the
+    per-example budget against its limit, steps per epoch and a predicted memory, loading no weights and
+    writing nothing; it refuses (DegustaError naming the key) a config whose examples cannot fit. Returns None.
+    """
     spec, cfg = build_config(path, overrides, "kind", get_trainer)
+    if dry_run:
+        if spec.dry_run is None:
+            raise DegustaError(f"kind: {cfg.kind!r} has no dry run")
+        spec.dry_run(cfg, log=log)
+        return None
     return spec.run(cfg)

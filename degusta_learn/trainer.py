@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import os
 import shutil
 import sys
@@ -88,13 +89,15 @@ class TrainerConfig:
     accelerator: str = "auto"
     """"cpu", "gpu", "auto" (GPU when present)."""
     devices: Any = "auto"
-    """Number of devices (int), a list of device indices, or "auto"."""
+    """Devices per node: a number (GPUs, or CPU processes: at most os.cpu_count()), a list of GPU indices, or "auto"."""
+    num_nodes: int = bounded(1, 1, 100_000)
+    """Machines of a multi-node run (launched by torchrun or SLURM `srun`; see docs/finetune.md)."""
     strategy: str = "auto"
     """Lightning strategy: "auto", "ddp", "ddp_spawn", "fsdp", ... (multi-GPU needs no code change)."""
     precision: str = "32-true"
     """"32-true", "bf16-mixed" (GPU), "16-mixed" (GPU)."""
     accumulate_grad_batches: int = bounded(1, 1, 10_000)
-    """Gradient accumulation: effective batch = batch_size * this * devices."""
+    """Gradient accumulation: effective batch = batch_size * this * devices * num_nodes."""
     gradient_clip_val: float | None = bounded(1.0, 0.0)
     """Clip the gradient norm to this (null: no clipping)."""
     log_every_n_steps: int = bounded(10, 1, 1_000_000_000)
@@ -122,6 +125,8 @@ class TrainerConfig:
             raise DegustaError("trainer.max_epochs / trainer.max_steps: set at least one of them (not both -1)")
         if self.monitor_mode not in ("min", "max"):
             raise DegustaError(f"trainer.monitor_mode: expected 'min' or 'max', got {self.monitor_mode!r}")
+        if isinstance(self.num_nodes, bool) or not isinstance(self.num_nodes, int) or self.num_nodes < 1:
+            raise DegustaError(f"trainer.num_nodes: expected a number of machines >= 1, got {self.num_nodes!r}")
         if self.accumulate_grad_batches < 1:
             raise DegustaError(f"trainer.accumulate_grad_batches: expected >= 1, got {self.accumulate_grad_batches}")
         if self.accelerator not in ACCELERATORS:
@@ -203,6 +208,10 @@ def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> 
         top = max(cfg.devices) + 1 if isinstance(cfg.devices, list) else wanted
         if wanted > gpus or top > gpus:
             raise DegustaError(f"trainer.devices: {cfg.devices} asks for more GPUs than the {gpus} available here")
+    else:
+        _check_cpu_devices(cfg)
+    if cfg.num_nodes > 1 or cfg.strategy != "auto" or world_size(cfg) > 1:
+        _check_cluster(cfg)
     if cfg.precision.startswith("transformer-engine") and not on_gpu:
         raise DegustaError(f"trainer.precision: {cfg.precision!r} needs a GPU; use 32-true or bf16-mixed on CPU")
     if cfg.precision in ("16-true", "16") and not on_gpu:
@@ -221,6 +230,75 @@ def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> 
         if cfg.monitor not in known:
             raise DegustaError(f"trainer.monitor: {cfg.monitor[:60]!r} is never logged by this trainer "
                                f"(logged: {', '.join(known)}; or null for last.ckpt only)")
+
+
+def _check_cpu_devices(cfg: TrainerConfig) -> None:
+    """On CPU every device is a process holding a full model copy: a count >= 1, at most the cores here.
+
+    Lightning would start 64 processes for `devices: 64` on a 2-core machine (each one loads the model and
+    they time-slice the cores: slower than one process, and memory x 64), so more processes than
+    `os.cpu_count()` are refused; -1 ("all") and lists of indices mean GPUs and are refused on CPU too.
+    """
+    cores = os.cpu_count() or 1
+    d = cfg.devices
+    if d == "auto":
+        return
+    if isinstance(d, list) or d == -1:
+        raise DegustaError(f"trainer.devices: {d} selects GPUs, but this run is on the CPU; give a number of "
+                           f"CPU processes (1..{cores}) or use trainer.accelerator=gpu on a GPU machine")
+    if d > cores:
+        raise DegustaError(f"trainer.devices: {d} CPU processes asked for, but this machine has {cores} cores "
+                           f"(each process holds a whole model and needs a core); use at most {cores}")
+
+
+def world_size(cfg: TrainerConfig) -> int:
+    """Processes of the run: devices per node x num_nodes ("auto": the visible GPUs, else 1)."""
+    d = cfg.devices
+    if isinstance(d, list):
+        n = len(d)
+    elif d in ("auto", -1):
+        import torch
+
+        gpu = cfg.accelerator in ("gpu", "cuda", "auto") and torch.cuda.is_available()
+        n = torch.cuda.device_count() if gpu else 1
+    else:
+        n = int(d)
+    return n * cfg.num_nodes
+
+
+def _check_cluster(cfg: TrainerConfig) -> None:
+    """A multi-node run needs a launcher that started the other machines' processes (else it would wait for
+    them forever); under torchrun / SLURM the world it made must be devices x num_nodes."""
+    env = os.environ
+    launched = env.get("WORLD_SIZE", "")
+    if cfg.num_nodes > 1 and not launched.isdigit() and not env.get("SLURM_NTASKS") and not env.get("MASTER_ADDR"):
+        raise DegustaError(f"trainer.num_nodes: {cfg.num_nodes} machines, but this process was not started by a "
+                           "multi-node launcher (torchrun --nnodes / SLURM srun: no WORLD_SIZE, SLURM_NTASKS or "
+                           "MASTER_ADDR); it would wait for the other machines forever. See docs/finetune.md, "
+                           "'Multi-GPU and multi-node'")
+    want = world_size(cfg)
+    if launched.isdigit() and int(launched) > 1 and int(launched) != want:  # torchrun (SLURM: Lightning checks)
+        raise DegustaError(f"trainer.devices / trainer.num_nodes: the launcher started {launched} processes "
+                           f"(WORLD_SIZE) but devices x num_nodes = {want}; make them agree (devices = processes "
+                           "per node, num_nodes = machines)")
+
+
+def global_rank() -> int:
+    """This process's rank as the launchers announce it, before any process group exists: torchrun's RANK,
+    SLURM_PROCID, or (Lightning's own children) NODE_RANK / LOCAL_RANK, where only 0 / 0 means 0."""
+    env = os.environ
+    for key in ("RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        if env.get(key, "").isdigit():
+            return int(env[key])
+    ranks = [int(env[k]) for k in ("NODE_RANK", "GROUP_RANK", "LOCAL_RANK") if env.get(k, "").isdigit()]
+    return 0 if not any(ranks) else max(1, sum(ranks))
+
+
+def is_global_zero(trainer=None) -> bool:
+    """True in the one process that writes files (rank 0), before and after the Trainer exists."""
+    if trainer is not None:
+        return bool(trainer.is_global_zero)
+    return global_rank() == 0
 
 
 def _trainer_key_in(message: str) -> str | None:
@@ -271,13 +349,15 @@ def training_run(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> I
     try:
         yield run
     except DegustaError:
-        _remove_if_empty_run(run, created)
+        if is_global_zero():
+            _remove_if_empty_run(run, created)
         raise
     except (ValueError, TypeError) as e:  # Lightning's checks of trainer values against the data (e.g.
         key = _trainer_key_in(str(e))      # val_check_interval > batches per epoch) become one-line errors
         if key is None:
             raise
-        _remove_if_empty_run(run, created)
+        if is_global_zero():
+            _remove_if_empty_run(run, created)
         first = " ".join(str(e).split(". ")[0].split())[:240]
         raise DegustaError(f"trainer.{key}: {first}") from None
 
@@ -331,12 +411,14 @@ def _pick_resume(run: Path) -> Path:
                        f"start this run again from scratch, or set trainer.run_name to a new folder")
 
 
-def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None) -> tuple[Path, Path | None]:
+def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = True) -> tuple[Path, Path | None]:
     """Create the run folder, write `config.yaml` beside the checkpoints and decide whether to resume.
 
     Args:
         cfg: the trainer section.
         full_config: the whole train config (dataclass or dict) to record; defaults to `cfg`.
+        write: False in the other processes of a multi-process run: they decide whether to resume
+            exactly as rank 0 does, but create, clean and write nothing (rank 0 does).
 
     Returns:
         (run folder, path of last.ckpt to resume from or None).
@@ -356,6 +438,8 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None) -> tuple[Path, 
         if (run / "config.yaml").exists():
             _check_same(read_yaml(run / "config.yaml"), resolved, run / "config.yaml")
         ckpt = _pick_resume(run)
+    if not write:
+        return run, ckpt
     try:
         run.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -470,7 +554,8 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
     sharded = cfg.strategy.startswith(("fsdp", "deepspeed"))
     try:
         return L.Trainer(
-            accelerator=cfg.accelerator, devices=cfg.devices, strategy=cfg.strategy, precision=cfg.precision,
+            accelerator=cfg.accelerator, devices=cfg.devices, num_nodes=cfg.num_nodes, strategy=cfg.strategy,
+            precision=cfg.precision,
             max_epochs=cfg.max_epochs, max_steps=cfg.max_steps, accumulate_grad_batches=cfg.accumulate_grad_batches,
             gradient_clip_val=cfg.gradient_clip_val, log_every_n_steps=cfg.log_every_n_steps,
             val_check_interval=cfg.val_check_interval, check_val_every_n_epoch=cfg.check_val_every_n_epoch,
@@ -494,8 +579,9 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
     """
     check_trainer(cfg, monitors)
     trainer = build_trainer(cfg, cfg.path, callbacks)
-    created = _first_missing(cfg.path)
-    run, ckpt = prepare_run_dir(cfg, full_config)
+    zero = trainer.is_global_zero  # known once the Trainer exists (from the launcher's environment)
+    created = _first_missing(cfg.path) if zero else None
+    run, ckpt = prepare_run_dir(cfg, full_config, write=zero)
     seed_everything(cfg.seed)
     try:
         with warnings.catch_warnings():  # the run folder holds config.yaml (and logs) by design
@@ -514,3 +600,133 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
     if not trainer.interrupted:  # last.ckpt is written at each validation; also keep the steps after the last one
         trainer.save_checkpoint(run / LAST, weights_only=False)  # full state (optimizer too), to resume
     return run
+
+
+def gather_unique_rows(module, rows):
+    """Every rank's validation rows as one tensor, each example once, sorted by example index (column 0).
+
+    Under DDP the validation sampler gives each rank a share of the examples and pads the shares to equal
+    length by repeating examples; a plain `self.log(..., sync_dist=True)` of per-rank means would then
+    average unequal shares and count the repeats twice. Gathering the per-example rows (`all_gather`, padded
+    with index -1 to the longest share) and keeping one row per index makes the metrics exactly those of a
+    single-process validation; rows are sorted by index in a single process too, so sums add up in the same
+    order. Every rank gets the same result (log it with sync_dist=True: the mean of equal values is the value).
+    """
+    import torch
+
+    if rows.ndim != 2:
+        raise ValueError("rows must be (n, columns)")
+    trainer = getattr(module, "_trainer", None)
+    if trainer is not None and trainer.world_size > 1:
+        device = module.device
+        counts = module.all_gather(torch.tensor([rows.shape[0]], device=device)).flatten()
+        top = int(counts.max())
+        padded = torch.full((top, rows.shape[1]), -1.0, dtype=rows.dtype, device=device)
+        padded[:rows.shape[0]] = rows.to(device)
+        rows = module.all_gather(padded).reshape(-1, rows.shape[1]).cpu()
+        rows = rows[rows[:, 0] >= 0]
+    rows = rows[torch.argsort(rows[:, 0], stable=True)]
+    if len(rows) > 1:
+        keep = torch.ones(len(rows), dtype=torch.bool)
+        keep[1:] = rows[1:, 0] != rows[:-1, 0]
+        rows = rows[keep]
+    return rows
+
+
+# --------------------------------------------------------------------------- dry runs (`degusta train --dry-run`)
+GiB = 1024**3
+ADAMW_STATE_BYTES = 8
+"""AdamW keeps two fp32 moments (exp_avg, exp_avg_sq) per trainable parameter."""
+
+
+@dataclass
+class MemoryEstimate:
+    """A predicted peak memory per device, in bytes, by parts (see `estimate_memory`): an ESTIMATE."""
+
+    weights: int
+    gradients: int
+    optimizer: int
+    activations: int
+    note: str = ""
+
+    @property
+    def total(self) -> int:
+        return self.weights + self.gradients + self.optimizer + self.activations
+
+    def describe(self) -> str:
+        parts = (f"weights {_size(self.weights)} + gradients {_size(self.gradients)} + AdamW states "
+                 f"{_size(self.optimizer)} + activations {_size(self.activations)}")
+        return f"~{_size(self.total)} per device (ESTIMATE, not measured: {parts}{'; ' + self.note if self.note else ''})"
+
+
+def _size(n: float) -> str:
+    for unit, scale in (("GiB", GiB), ("MiB", 1024**2), ("KiB", 1024)):
+        if n >= scale:
+            return f"{n / scale:.2f} {unit}"
+    return f"{int(n)} B"
+
+
+def estimate_memory(total_params: int, trainable_params: int, param_bytes: float, trainable_bytes: float = 4,
+                    activation_bytes: float = 0, processes: int = 1, note: str = "") -> MemoryEstimate:
+    """The simple memory model of `degusta train --dry-run` (an estimate; it is not checked against a GPU).
+
+    peak ~ frozen params x `param_bytes` + trainable params x `trainable_bytes` (the weights)
+         + trainable params x `trainable_bytes` (their gradients; x2 under DDP: the all-reduce buckets)
+         + trainable params x 8 (AdamW's two fp32 moments)
+         + `activation_bytes` (the caller's rough activation term for one batch).
+    Not included: the CUDA context and kernels (~0.3-1 GiB), allocator fragmentation, data-loader workers.
+    """
+    frozen = max(0, total_params - trainable_params)
+    grads = trainable_params * trainable_bytes * (2 if processes > 1 else 1)
+    return MemoryEstimate(weights=int(frozen * param_bytes + trainable_params * trainable_bytes), gradients=int(grads),
+                          optimizer=int(trainable_params * ADAMW_STATE_BYTES), activations=int(activation_bytes),
+                          note=note)
+
+
+def transformer_activations(tokens: int, hidden: int, intermediate: int, layers: int, value_bytes: float,
+                            checkpointing: bool = False) -> float:
+    """Rough bytes a decoder stack keeps for backward over `tokens` tokens (batch x sequence).
+
+    Per layer and token a (LLaMA-style, SwiGLU, fused attention: no T^2 scores) layer keeps about
+    6 x hidden + 4 x intermediate values (norm, QKV and output-projection inputs, attention output; gate, up,
+    activation and down-projection inputs). With gradient checkpointing only each layer's input (hidden
+    values) is kept, plus one layer's full set while it is recomputed.
+    """
+    per_layer = (6 * hidden + 4 * intermediate) * tokens * value_bytes
+    if checkpointing:
+        return hidden * tokens * value_bytes * layers + per_layer
+    return per_layer * layers
+
+
+def steps_per_epoch(n_examples: int, batch_size: int, cfg: TrainerConfig) -> tuple[int, int]:
+    """(batches per process per epoch, optimizer steps per epoch) for `n_examples` under `cfg`'s processes."""
+    per_process = math.ceil(n_examples / world_size(cfg))  # DistributedSampler pads to equal shares
+    batches = math.ceil(per_process / batch_size)
+    return batches, math.ceil(batches / cfg.accumulate_grad_batches)
+
+
+def dry_run_trainer_lines(cfg: TrainerConfig, monitors: Iterable[str] | None, n_examples: int,
+                          batch_size: int) -> list[tuple[str, str]]:
+    """The report lines every kind shares: steps per epoch, the run's length, the trainer check on this machine."""
+    batches, steps = steps_per_epoch(n_examples, batch_size, cfg)
+    world = world_size(cfg)
+    per = f"{n_examples} examples / ({batch_size} per batch x {world} process{'es' if world > 1 else ''})"
+    acc = f", accumulating {cfg.accumulate_grad_batches}" if cfg.accumulate_grad_batches > 1 else ""
+    limit = [f"max_steps {cfg.max_steps}" if cfg.max_steps > 0 else "",
+             f"max_epochs {cfg.max_epochs}" if cfg.max_epochs > 0 else ""]
+    lines = [("steps per epoch", f"{steps} ({per}{acc}); stops at {' or '.join(x for x in limit if x)}")]
+    try:
+        check_trainer(cfg, monitors)
+        lines.append(("trainer check", f"ok on this machine ({cfg.accelerator}, devices {cfg.devices}, "
+                                       f"num_nodes {cfg.num_nodes}, strategy {cfg.strategy}, {cfg.precision})"))
+    except DegustaError as e:  # a GPU config checked on a login node: say so, the rest of the report still holds
+        lines.append(("trainer check", f"FAILS on this machine: {e}"))
+    return lines
+
+
+def print_dry_run(title: str, lines: list[tuple[str, str]], log=print) -> None:
+    """`title` then aligned `label  value` lines."""
+    log(title)
+    width = max((len(k) for k, _ in lines), default=0)
+    for key, value in lines:
+        log(f"  {key:<{width}}  {value}")

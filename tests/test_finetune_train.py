@@ -63,14 +63,14 @@ def test_train_resume_and_predict_with_the_hf_backend(tmp_path):
     episodes = tmp_path / "episodes.jsonl"
     write_episodes(episodes, make_episodes(dataset(), 2, "test", 0)[:2])
     out = run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [
-        f"dataset={data}", f"episodes={episodes}", f"out={tmp_path / 'pred' / 'predictions.jsonl'}",
+        f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred' / 'predictions.jsonl'}",
         f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}", "backend.max_tokens=140",
         "image_size=128"])
     preds = read_predictions(out, dataset().catalog)
     assert len(preds) == 2 and not any(p.failed for p in preds) and all(p.placements for p in preds)
     with pytest.raises(DegustaError, match="grid"):  # the adapter knows the grid it was trained on
         run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [
-            f"dataset={data}", f"episodes={episodes}", f"out={tmp_path / 'pred2' / 'p.jsonl'}",
+            f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred2' / 'p.jsonl'}",
             f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}", "grid.rows=6"])
 
 

@@ -125,3 +125,12 @@ def test_anthropic_temperature_reaches_clients_with_and_without_the_keyword():
 
     assert sampling_arguments(old_create, 0.3) == {"temperature": 0.3}
     assert sampling_arguments(new_create, 0.3) == {"extra_body": {"temperature": 0.3}}
+
+
+def test_redact_removes_credentials_inside_urls():
+    from degusta_learn.prompting.backends.base import redact
+
+    assert redact("http://alice:s3cret@127.0.0.1:8000/v1") == "http://***@127.0.0.1:8000/v1"
+    assert redact('{"base_url": "https://h/v1?key=s3cret&x=1"}') == '{"base_url": "https://h/v1?key=***&x=1"}'
+    assert redact("GET /v1/models?token=abc123") == "GET /v1/models?token=***"
+    assert redact("see https://example.com/a@b") == "see https://example.com/a@b"  # a path, not credentials

@@ -33,7 +33,12 @@ class Collator:
         if self.pad_id is None:
             self.pad_id = fmt.end_id
 
-    def __call__(self, examples) -> dict:
+    def encode(self, examples) -> tuple[dict, list[list[int]], list[int]]:
+        """(processor output for the prompts, completion ids per example, prompt length per example).
+
+        The one place prompt + answer tokens are counted: batches (`__call__`) and `token_counts` (the
+        dry run of `degusta train`) both go through it.
+        """
         tok = self.processor.tokenizer
         texts, images = [], []
         for ex in examples:
@@ -50,10 +55,37 @@ class Collator:
         completions = [tok(self.fmt.completion_text(ex.answer), add_special_tokens=False)["input_ids"]
                        for ex in examples]
         prompt_lens = enc["attention_mask"].sum(dim=1).tolist()
+        return enc, completions, prompt_lens
+
+    def token_counts(self, examples) -> list[dict]:
+        """Per example: {"total", "image", "text", "answer"} tokens, exactly as a batch would hold them
+        (no budget check: the caller compares "total" with `max_length`)."""
+        return self._counts(*self.encode(examples))
+
+    def _counts(self, enc, completions, prompt_lens) -> list[dict]:
+        out = []
+        for b, (p, c) in enumerate(zip(prompt_lens, completions)):
+            n_img = 0
+            if self.image_token_id is not None:
+                n_img = int((enc["input_ids"][b] == self.image_token_id).sum())
+            out.append({"total": p + len(c), "image": n_img, "text": p - n_img, "answer": len(c)})
+        return out
+
+    def budget_error(self, ex, counts: dict) -> DegustaError:
+        """The one-line error of an example over the budget (`counts` as `token_counts` gives them)."""
+        return DegustaError(f"{self.key}: episode {ex.episode} needs {counts['total']} tokens ({counts['image']} "
+                            f"image tokens, {counts['text']} other prompt tokens, {counts['answer']} answer tokens) "
+                            f"but the budget is {self.max_length}; nothing is truncated (cutting image tokens "
+                            "breaks the model): lower model.image_size, compose images (data.compose), drop image "
+                            f"groups (data.include) or raise {self.key} up to the model's context")
+
+    def __call__(self, examples) -> dict:
+        enc, completions, prompt_lens = self.encode(examples)
         lengths = [p + len(c) for p, c in zip(prompt_lens, completions)]
-        for ex, p, c, n in zip(examples, prompt_lens, completions, lengths):
-            if n > self.max_length:
-                raise DegustaError(self._budget_message(ex, enc, p, len(c), n))
+        if max(lengths) > self.max_length:
+            for ex, counts in zip(examples, self._counts(enc, completions, prompt_lens)):
+                if counts["total"] > self.max_length:
+                    raise self.budget_error(ex, counts)
         T = max(lengths)
         B = len(examples)
         seq_shape = tuple(enc["input_ids"].shape)
@@ -73,16 +105,6 @@ class Collator:
                 v[b, :p] = enc[k][b][real]
         out.update(input_ids=input_ids, attention_mask=attention, labels=labels, **per_token)
         return out
-
-    def _budget_message(self, ex, enc, prompt_len: int, answer_len: int, n: int) -> str:
-        n_img = 0
-        if self.image_token_id is not None:
-            n_img = int((enc["input_ids"] == self.image_token_id).sum(dim=1).max())
-        return (f"{self.key}: episode {ex.episode} needs {n} tokens ({n_img} image tokens, "
-                f"{prompt_len - n_img} other prompt tokens, {answer_len} answer tokens) but the budget is "
-                f"{self.max_length}; nothing is truncated (cutting image tokens breaks the model): lower "
-                "model.image_size, compose images (data.compose), drop image groups (data.include) or "
-                f"raise {self.key} up to the model's context")
 
 
 def supervised_text(tokenizer, batch: dict, row: int) -> str:

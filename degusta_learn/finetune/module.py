@@ -3,7 +3,10 @@
 `FinetuneModule` trains with `lm_loss` (answer tokens only) and validates by GENERATING answers for
 held-out (val) participants: each answer is parsed, aggregated and scored like any method's
 prediction, and val/parse_rate, val/rmsd, val/set_rmsd, val/object_accuracy, val/count_error (plus
-val/loss) are logged. val/set_rmsd charges every unmatched object, so it is the one to select on. With LoRA,
+val/loss) are logged. val/set_rmsd charges every unmatched object, so it is the one to select on. Under DDP
+each rank generates for its share of the val episodes; the per-episode scores are gathered and each episode
+counted once (`trainer.gather_unique_rows`), so the metrics equal a single-process validation's (val/loss is
+the mean of the ranks' batch means); only rank 0 writes the adapter. With LoRA,
 Lightning checkpoints hold only the trainable tensors (+ optimizer state), never the frozen base;
 the adapter itself is written with `PeftModel.save_pretrained` to `<run>/adapter/` whenever a
 checkpoint is saved (and at the end), loadable by plain peft.
@@ -21,6 +24,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from degusta_learn.finetune.loss import lm_loss, unwrap
+from degusta_learn.trainer import gather_unique_rows
 
 
 def monitor_keys(cfg) -> set[str]:
@@ -82,9 +86,16 @@ class FinetuneModule(L.LightningModule):
         self.log("val/loss", loss, batch_size=len(examples), sync_dist=True)
         e = self.cfg.eval
         for ex in examples:
-            self._val.append(self.score(ex, e.constrained))
+            self._val.append({**self.score(ex, e.constrained), "index": self._val_index(ex)})
             if e.report_unconstrained and e.constrained:
                 self._val[-1]["parsed_free"] = self.score(ex, False)["parsed"]
+
+    def _val_index(self, ex) -> int:
+        """The example's position in the validation set (ranks' shares are merged by it)."""
+        if getattr(self, "_val_positions", None) is None:
+            val = getattr(getattr(self.trainer, "datamodule", None), "val", None)
+            self._val_positions = {getattr(x, "id", None): i for i, x in enumerate(getattr(val, "episodes", []))}
+        return self._val_positions.get(ex.episode, len(self._val_positions))
 
     def score(self, ex, constrained: bool) -> dict:
         """Generate one greedy answer for `ex` and score it against the ground truth."""
@@ -111,18 +122,24 @@ class FinetuneModule(L.LightningModule):
     def on_validation_epoch_end(self):
         if not self._val:
             return
-        rows, self._val = self._val, []
-        rmsds = [r["rmsd"] for r in rows if not math.isnan(r["rmsd"])]
-        stats = {"val/parse_rate": sum(r["parsed"] for r in rows) / len(rows),
-                 "val/rmsd": sum(rmsds) / len(rmsds) if rmsds else float("nan"),
-                 "val/object_accuracy": sum(r["acc"] for r in rows) / len(rows),
+        local, self._val = self._val, []
+        free = "parsed_free" in local[0]
+        table = torch.tensor([[r["index"], r["parsed"], r["rmsd"], r["acc"], r["set_rmsd"], r["count_error"],
+                               r.get("parsed_free", 0.0)] for r in local], dtype=torch.float64)
+        # every rank's examples, each once (DDP pads the ranks' shares with repeats): a single-process result
+        rows = gather_unique_rows(self, table)
+        n = len(rows)
+        rmsd = rows[:, 2][~torch.isnan(rows[:, 2])]
+        stats = {"val/parse_rate": float(rows[:, 1].sum()) / n,
+                 "val/rmsd": float(rmsd.sum()) / len(rmsd) if len(rmsd) else float("nan"),
+                 "val/object_accuracy": float(rows[:, 3].sum()) / n,
                  # set-aware: an unmatched object costs SET_PENALTY, so a one-object answer cannot look best
-                 "val/set_rmsd": sum(r["set_rmsd"] for r in rows) / len(rows),
-                 "val/count_error": sum(r["count_error"] for r in rows) / len(rows)}
-        if "parsed_free" in rows[0]:
-            stats["val/parse_rate_unconstrained"] = sum(r["parsed_free"] for r in rows) / len(rows)
-        self.log_dict(stats, prog_bar=True, sync_dist=True)
-        self.last_val = {**stats, "example": rows[0]["text"]}
+                 "val/set_rmsd": float(rows[:, 4].sum()) / n,
+                 "val/count_error": float(rows[:, 5].sum()) / n}
+        if free:
+            stats["val/parse_rate_unconstrained"] = float(rows[:, 6].sum()) / n
+        self.log_dict(stats, prog_bar=True, sync_dist=True)  # identical on every rank: the mean is the value
+        self.last_val = {**stats, "example": local[0]["text"]}
 
     # ------------------------------------------------------------------ checkpoints: adapters apart
     def on_save_checkpoint(self, checkpoint: dict) -> None:

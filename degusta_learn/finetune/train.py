@@ -43,28 +43,34 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
 def prepare_model(cfg: FinetuneConfig):
     """(trainable model, processor) per cfg.model / cfg.lora, image budget set, context checked."""
     from degusta_learn.finetune import lora
-    from degusta_learn.finetune.inputs import check_grid_resolution, set_image_budget
     from degusta_learn.finetune.model import load_vlm
-    from degusta_learn.finetune.tiny import ensure_tiny
-    from degusta_learn.prompting import answer_kind
 
     if cfg.model.build_tiny:
-        ensure_tiny(cfg.model.name, cfg.model.build_tiny)
+        ensure_tiny_model(cfg)
     quant, device = None, "cpu"  # Lightning moves the model to its device
     if cfg.lora.mode == "qlora":  # a 4-bit base is loaded straight onto the GPU (untested here: no GPU)
         lora.check_qlora()
         quant, device = lora.quantization_config(), "cuda"
     model, processor = load_vlm(cfg.model.name, device=device, dtype=cfg.model.dtype, key="model.name",
                                 quantization_config=quant)
-    set_image_budget(processor, model.config, cfg.model.image_size)
+    set_budget(cfg, processor, model.config)
+    model.train()
+    return lora.apply_lora(model, cfg.lora), processor
+
+
+def set_budget(cfg: FinetuneConfig, processor, model_config) -> None:
+    """Set the processor's image budget, then check it against the grid and `data.max_length` against the
+    model's context (one-line errors naming the key)."""
+    from degusta_learn.finetune.inputs import check_grid_resolution, set_image_budget
+    from degusta_learn.prompting import answer_kind
+
+    set_image_budget(processor, model_config, cfg.model.image_size)
     if answer_kind(cfg.method) == "grid":
-        check_grid_resolution(processor, model.config, cfg.data.grid, key="model.image_size")
-    context = getattr(model.config.get_text_config(), "max_position_embeddings", None)
+        check_grid_resolution(processor, model_config, cfg.data.grid, key="model.image_size")
+    context = getattr(model_config.get_text_config(), "max_position_embeddings", None)
     if context and cfg.data.max_length > context:
         raise DegustaError(f"data.max_length: {cfg.data.max_length} exceeds the model's context of {context} "
                            "tokens; lower it (and the image budget: model.image_size, data.compose, data.include)")
-    model.train()
-    return lora.apply_lora(model, cfg.lora), processor
 
 
 def check_budget(examples, collator) -> None:
@@ -133,5 +139,199 @@ def run(cfg: FinetuneConfig) -> Path:
         return run_dir
 
 
+def ensure_tiny_model(cfg: FinetuneConfig, wait_s: float = 600.0) -> None:
+    """Build the tiny model at `model.name` if missing; under a launcher that starts every rank at once
+    (torchrun, srun) only rank 0 builds it and the others wait for its marker file."""
+    import time
+
+    from degusta_learn.finetune.tiny import TINY_VERSION, ensure_tiny
+    from degusta_learn.trainer import global_rank
+
+    marker = Path(cfg.model.name) / "degusta_tiny.json"
+    if global_rank() == 0:
+        ensure_tiny(cfg.model.name, cfg.model.build_tiny)
+        return
+    deadline = time.monotonic() + wait_s
+    while not (marker.is_file() and f'"version": {TINY_VERSION}' in marker.read_text()):
+        if time.monotonic() > deadline:
+            raise DegustaError(f"model.build_tiny: rank {global_rank()} waited {wait_s:.0f} s for rank 0 to build "
+                               f"{cfg.model.name}; build it first (a single-process run) or check rank 0's error")
+        time.sleep(0.5)
+
+
+class _SizeOnlyRenderer:
+    """Stands in for the lifted-image renderer when only token counts are needed: blank images of the
+    renderer's exact size (every lifted image is `size` x `size`; the processor's token count depends only on
+    that), so counting every training example takes seconds instead of drawing every scene."""
+
+    def __init__(self, size: int):
+        self.size = size
+
+    def _blank(self, *args, **kwargs):
+        from PIL import Image
+
+        return Image.new("RGB", (self.size, self.size), "white")
+
+    gomo = gomo_sheet = uma = gma = table = _blank
+
+
+def count_tokens(examples, collator, limit: int | None = None, batch: int = 16) -> list[dict]:
+    """`Collator.token_counts` of every example (or the first `limit`): prompts built as in training, the
+    lifted images blank at their size."""
+    import copy
+
+    n = len(examples) if limit is None else min(limit, len(examples))
+    if n == 0:
+        return []
+    counting = copy.copy(examples)
+    counting._renderer = _SizeOnlyRenderer(examples.render_size)
+    out: list[dict] = []
+    for start in range(0, n, batch):
+        out += collator.token_counts([counting[i] for i in range(start, min(start + batch, n))])
+    return out
+
+
+def token_summary(counts: list[dict], max_length: int, what: str) -> str:
+    """"max M / mean m of data.max_length L (p% used) over N <what>; image, text, answer max / mean"."""
+    def mm(key: str) -> str:
+        values = [c[key] for c in counts]
+        return f"{max(values)} / {sum(values) / len(values):.1f}"
+
+    top = max(c["total"] for c in counts)
+    return (f"max {top} / mean {sum(c['total'] for c in counts) / len(counts):.1f} tokens of data.max_length "
+            f"{max_length} ({top / max_length:.0%} used) over {len(counts)} {what} (max / mean: image {mm('image')}, "
+            f"other prompt {mm('text')}, answer {mm('answer')})")
+
+
+def refuse_over_budget(examples, counts: list[dict], collator) -> None:
+    """The collator's own one-line `data.max_length` error for the longest example over the budget."""
+    if not counts:
+        return
+    worst = max(range(len(counts)), key=lambda i: counts[i]["total"])
+    if counts[worst]["total"] > collator.max_length:
+        raise collator.budget_error(examples[worst], counts[worst])
+
+
+def meta_model(source: str, key: str = "model.name"):
+    """(model built from its config on the meta device: shapes only, no memory, no weights read; its config)."""
+    import torch
+    from transformers import AutoConfig, AutoModelForImageTextToText
+
+    try:
+        config = AutoConfig.from_pretrained(source, local_files_only=True)
+        with torch.device("meta"):
+            model = AutoModelForImageTextToText.from_config(config)
+    except Exception as e:  # noqa: BLE001 - a foreign or broken config.json: one line
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise DegustaError(f"{key}: cannot build {source!r} from its config: {type(e).__name__}: {first}"[:400]) from None
+    return model, config
+
+
+def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: int, batch_size: int,
+               counts: list[dict], on_gpu: bool):
+    """The dry run's memory estimate of a VLM fine-tune (see `trainer.estimate_memory` for the model)."""
+    from degusta_learn.trainer import estimate_memory, transformer_activations, world_size
+
+    dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu else "float32")
+    param_bytes = {"float32": 4, "bfloat16": 2, "float16": 2}[dtype]
+    note = f"{dtype} weights"
+    if lora_cfg.mode == "qlora":
+        param_bytes, note = 0.55, "4-bit NF4 base (~0.55 bytes per weight with its scales)"
+    trainable_bytes = 4 if lora_cfg.mode != "full" else param_bytes  # peft keeps adapter weights in fp32
+    act_bytes = 2 if (param_bytes < 4 or "bf16" in trainer_cfg.precision or "16" in trainer_cfg.precision) else 4
+    T = max(c["total"] for c in counts)
+    text = config.get_text_config()
+    hidden = getattr(text, "hidden_size", 0)
+    inter = getattr(text, "intermediate_size", 4 * hidden)
+    layers = getattr(text, "num_hidden_layers", 0)
+    acts = transformer_activations(batch_size * T, hidden, inter, layers, act_bytes,
+                                   checkpointing=cfg_model.gradient_checkpointing)
+    answer = max(c["answer"] for c in counts)
+    vocab = getattr(text, "vocab_size", 0)
+    acts += batch_size * answer * vocab * 4 * 2  # fp32 logits of the supervised positions + their softmax grad
+    vision_trains = lora_cfg.vision_targets or lora_cfg.connector or (lora_cfg.mode == "full" and not lora_cfg.freeze_vision)
+    vc = getattr(config, "vision_config", None)
+    if vision_trains and vc is not None and getattr(vc, "hidden_size", None) and getattr(vc, "num_hidden_layers", None):
+        merge = getattr(config, "scale_factor", None) or getattr(vc, "spatial_merge_size", None) or 1
+        patches = batch_size * max(c["image"] for c in counts) * merge**2
+        acts += transformer_activations(patches, vc.hidden_size, getattr(vc, "intermediate_size", 4 * vc.hidden_size),
+                                        vc.num_hidden_layers, act_bytes, cfg_model.gradient_checkpointing)
+        note += "; the vision tower trains: its activations are counted"
+    elif vision_trains:
+        note += "; the vision tower trains, but its activations are not modelled (no transformer config): add them"
+    else:
+        note += "; frozen vision tower: no activations kept for it"
+    note += (f"; activations for a batch of {batch_size} x {T} tokens"
+             f"{', gradient checkpointing' if cfg_model.gradient_checkpointing else ''}")
+    return estimate_memory(total, trainable, param_bytes, trainable_bytes, acts, world_size(trainer_cfg), note)
+
+
+def dry_run(cfg: FinetuneConfig, log=print) -> None:
+    """`degusta train --dry-run` for kind finetune: sizes, token budget, steps and memory; loads no weights,
+    trains nothing, writes nothing (an unbuilt tiny model is built in a temporary folder, then removed)."""
+    import contextlib
+    import dataclasses
+    import tempfile
+    import warnings
+
+    import torch
+
+    from degusta_learn.finetune import lora
+    from degusta_learn.finetune.collate import Collator
+    from degusta_learn.finetune.inputs import ChatFormat
+    from degusta_learn.finetune.model import load_processor
+    from degusta_learn.finetune.module import monitor_keys
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import load_dataset
+    from degusta_learn.trainer import dry_run_trainer_lines, print_dry_run
+
+    ds = load_dataset(cfg.dataset)
+    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+    notes = []
+    with contextlib.ExitStack() as stack:
+        source = cfg.model.name
+        marker = Path(source) / "degusta_tiny.json"
+        if cfg.model.build_tiny and not marker.is_file():
+            from degusta_learn.finetune.tiny import ensure_tiny
+
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="degusta-dry-run-"))
+            source = str(ensure_tiny(Path(tmp) / "tiny", cfg.model.build_tiny))
+            notes.append(f"{cfg.model.name} is not built yet: its tiny {cfg.model.build_tiny} was built in a temporary "
+                         "folder to read its config and processor (the run builds it in place)")
+        processor = load_processor(source, "model.name")
+        model, config = meta_model(source)
+    set_budget(cfg, processor, config)
+    fmt = ChatFormat(processor, getattr(model, "generation_config", None))
+    total = sum(p.numel() for p in model.parameters())
+    counting_lora = dataclasses.replace(cfg.lora, mode="lora") if cfg.lora.mode == "qlora" else cfg.lora
+    with torch.device("meta"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # peft asks a deprecated transformers property
+        model = lora.apply_lora(model, counting_lora)
+    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    total_after = sum(p.numel() for p in model.parameters())
+    collator = Collator(processor, fmt, cfg.data.max_length, getattr(config, "image_token_id", None))
+    train, val = build_examples(cfg, ds, grid)
+    if len(train) == 0:
+        raise DegustaError("data.contexts: no training episodes (empty train split?)")
+    counts, val_counts = count_tokens(train, collator), count_tokens(val, collator)
+    refuse_over_budget(train, counts, collator)
+    refuse_over_budget(val, val_counts, collator)
+    t = cfg.trainer
+    on_gpu = t.accelerator in ("gpu", "cuda") or (t.accelerator == "auto" and torch.cuda.is_available())
+    what = {"lora": f"LoRA r={cfg.lora.r} adapters", "qlora": f"QLoRA r={cfg.lora.r} adapters on a 4-bit base",
+            "full": "full fine-tuning" + (" (vision tower frozen)" if cfg.lora.freeze_vision else "")}[cfg.lora.mode]
+    lines = [("model", f"{cfg.model.name} ({config.model_type}): {total:,} parameters, built on the meta device "
+                       "(no weights loaded)"),
+             ("trainable", f"{trainable:,} parameters ({trainable / max(total_after, 1):.2%} of {total_after:,}), "
+                           f"{what}"),
+             ("tokens per example", token_summary(counts, cfg.data.max_length, "training examples")
+              + (f"; validation: max {max(c['total'] for c in val_counts)} over {len(val_counts)}" if val_counts else ""))]
+    lines += dry_run_trainer_lines(t, monitor_keys(cfg), len(train), cfg.data.batch_size)
+    mem = vlm_memory(cfg.model, cfg.lora, t, config, total_after, trainable, cfg.data.batch_size, counts, on_gpu)
+    lines.append(("predicted memory", mem.describe()))
+    lines += [("note", n) for n in notes]
+    print_dry_run(f"dry run of kind finetune ({cfg.method}): nothing loaded, trained or written", lines, log)
+
+
 TRAINER = TrainerSpec(FinetuneConfig, run, "fine-tune a VLM (LoRA / QLoRA / full) on lifted images of a "
-                      "prompting method; validation generates and scores answers")
+                      "prompting method; validation generates and scores answers", dry_run=dry_run)

@@ -10,10 +10,11 @@ Registered as TRAINERS["learned"] (`TRAINER`) and METHODS["learned"] (`METHOD`).
 """
 
 from degusta_learn.baselines.learned.predict import LearnedPredictConfig, load_model, predict_episodes, run
-from degusta_learn.baselines.learned.train import LearnedTrainConfig, build, train
+from degusta_learn.baselines.learned.train import LearnedTrainConfig, build, dry_run, train
 from degusta_learn.methods import MethodSpec, TrainerSpec
 
-TRAINER = TrainerSpec(LearnedTrainConfig, train, "slot model: a transformer over the participant's aligned context objects (PyTorch + Lightning)")
+TRAINER = TrainerSpec(LearnedTrainConfig, train, "slot model: a transformer over the participant's aligned context objects (PyTorch + Lightning)",
+                      dry_run=dry_run)
 METHOD = MethodSpec(LearnedPredictConfig, run, "a trained learned arrangement model (config key: checkpoint)")
 
 __all__ = ["METHOD", "TRAINER", "LearnedPredictConfig", "LearnedTrainConfig", "build", "load_model",

@@ -4,8 +4,9 @@ Training minimizes `SlotModel.loss`. Validation does two things on the val parti
 same loss (`val/loss`), and a full prediction of every episode
 scored with `degusta_learn.metrics.score_prediction` exactly as `degusta evaluate` would — logged as
 `val/rmsd`, `val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`,
-`val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Sums are reduced across devices, so the
-numbers are exact under DDP.
+`val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Under DDP each rank scores its share of
+the episodes and the per-episode rows are gathered, each episode counted once (`trainer.gather_unique_rows`),
+so the metrics equal a single-process validation's; `val/loss` is the mean of the ranks' batch means.
 
 Hyperparameters are saved as plain data (model config, optimizer config, vocabulary, the population rows
 used at context 0 as [table id, rows] pairs) plus `kind: "learned"` and `format`, so checkpoints load
@@ -31,6 +32,7 @@ from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import score_prediction
 from degusta_learn.scene import Placement
+from degusta_learn.trainer import gather_unique_rows
 
 KIND = "learned"
 FORMAT = 2  # 1: the autoregressive token model (before the slot model); refused by predict.load_model
@@ -106,16 +108,16 @@ class LearnedModule(L.LightningModule):
             xy = onto_surface(dm.ds.tables[gt.table], xy)
             s = score_prediction(dm.ds.catalog, gt, [Placement(ids[r], *p, float(a)) for r, p, a in zip(rows, xy, rot)])
             ok = not math.isnan(s.rmsd)
-            self._val.append(torch.tensor([len(e.context), 1.0, s.object_accuracy, s.rmsd if ok else 0.0, float(ok),
+            self._val.append(torch.tensor([i, len(e.context), 1.0, s.object_accuracy, s.rmsd if ok else 0.0, float(ok),
                                            s.rmsd_unregistered if ok else 0.0, s.count_error,
                                            ok and s.rmsd <= 0.05, ok and s.rmsd <= 0.10], dtype=torch.float64))
 
     def on_validation_epoch_end(self) -> None:
         ks = sorted(set(self.trainer.datamodule.cfg.val_context_lengths))
-        rows = torch.stack(self._val) if self._val else torch.zeros(0, 9, dtype=torch.float64)
+        rows = torch.stack(self._val) if self._val else torch.zeros(0, 10, dtype=torch.float64)
+        rows = gather_unique_rows(self, rows)[:, 1:]  # every rank's episodes, each once (DDP pads the shares)
         # per context length: sums of [n, acc, rmsd, n_rmsd, rmsd_unreg, count_error, acc@.05, acc@.10]
         sums = torch.stack([rows[rows[:, 0] == k, 1:].sum(0) for k in ks] + [rows[:, 1:].sum(0)])
-        sums = self.trainer.strategy.reduce(sums.to(self.device), reduce_op="sum").double().cpu()
         for name, s in zip([f"_k{k}" for k in ks] + [""], sums):
             n, nr = max(float(s[0]), 1.0), float(s[3])
             metrics = {"object_accuracy": s[1] / n, "rmsd": s[2] / nr if nr else float("nan"),
@@ -124,7 +126,7 @@ class LearnedModule(L.LightningModule):
             for key, value in metrics.items():
                 if name and key not in ("object_accuracy", "rmsd"):
                     continue
-                # already summed over devices: identical on every rank, so sync_dist's mean changes nothing
+                # gathered from every device: identical on every rank, so sync_dist's mean changes nothing
                 self.log(f"val/{key}{name}", float(value), prog_bar=not name and key in ("rmsd", "object_accuracy"),
                          sync_dist=True)
         self._val = []

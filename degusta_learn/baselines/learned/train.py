@@ -57,6 +57,53 @@ def build(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> tuple[LearnedMo
     return module, dm
 
 
+def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> None:
+    """`degusta train --dry-run` for kind learned: parameters, slots per example, objects per arrangement
+    against model.max_objects, steps per epoch and a memory estimate; trains and writes nothing.
+
+    The slot model is small, so it is built for real on the CPU (random initial weights, nothing is loaded).
+    Slots are counted over every (participant, target, context length) training item, once, unaugmented
+    (augmentations move and relabel objects but keep their number). Refuses an arrangement with more
+    objects than model.max_objects (the run would fail on it mid-epoch).
+    """
+    from degusta_learn.trainer import (dry_run_trainer_lines, estimate_memory, print_dry_run,
+                                       transformer_activations, world_size)
+
+    ds = ds if ds is not None else load_dataset(cfg.data.dataset)
+    most = max(ds.arrangements, key=lambda a: len(a.placements), default=None)
+    if most is not None and len(most.placements) > cfg.model.max_objects:
+        raise DegustaError(f"model.max_objects: {cfg.model.max_objects}, but participant {most.participant!r} trial "
+                           f"{most.trial} of {cfg.data.dataset} has {len(most.placements)} objects; raise it to at "
+                           f"least {len(most.placements)}")
+    module, dm = build(cfg, ds)
+    total = sum(p.numel() for p in module.parameters())
+    trainable = sum(p.numel() for p in module.parameters() if p.requires_grad)
+    items = dict.fromkeys(dm.train_set.items)  # unique (participant, target, k), in order
+    slots, objects = [], []
+    for p, t, k in items:
+        trials = dm.train_set.trials[p]
+        context = [a for j, a in enumerate(trials) if j != t][:k]
+        slots.append(len(dm.train_set.encode(context, trials[t].table, trials[t])["slot_type"]))
+        objects.append(len(trials[t].placements))
+    val_slots = [len(dm.val_set[i]["slot_type"]) for i in range(len(dm.val_set))]
+    S, B, m = max(slots), cfg.data.batch_size, cfg.model
+    acts = transformer_activations(B * S, m.d_model, m.d_ff, m.n_layers, 4)
+    acts += B * m.n_heads * S * S * 4 * 2 * m.n_layers  # attention weights (plain attention keeps them)
+    mem = estimate_memory(total, trainable, 4, 4, acts, world_size(cfg.trainer),
+                          note=f"float32; activations for a batch of {B} x {S} slots")
+    lines = [("model", f"slot model (d_model {m.d_model}, {m.n_layers} layers, {m.n_heads} heads): {total:,} parameters, "
+                       "random initial weights (nothing loaded)"),
+             ("trainable", f"{trainable:,} parameters (all)"),
+             ("slots per example", f"max {S} / mean {sum(slots) / len(slots):.1f} over {len(slots)} unique training "
+                                   f"items (x data.repeats {cfg.data.repeats}, augmented afresh); validation: max "
+                                   f"{max(val_slots, default=0)} over {len(val_slots)} episodes"),
+             ("objects per target", f"max {max(objects)} / mean {sum(objects) / len(objects):.1f} of model.max_objects "
+                                    f"{m.max_objects} ({max(objects) / m.max_objects:.0%} used)")]
+    lines += dry_run_trainer_lines(cfg.trainer, monitor_keys(cfg.data.val_context_lengths), len(dm.train_set), B)
+    lines.append(("predicted memory", mem.describe()))
+    print_dry_run("dry run of kind learned: nothing trained or written", lines, log)
+
+
 def train(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> Path:
     """TrainerSpec.run of kind `learned`: train and return the run folder (seeded before the model is built)."""
     if cfg.num_threads:

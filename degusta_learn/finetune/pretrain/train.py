@@ -201,5 +201,63 @@ def run(cfg: PretrainConfig) -> Path:
             module.load_state_dict(state)
         return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=module.global_step)
 
+def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
+    """`degusta train --dry-run` for kind pretrain: sizes, tokens per example against data.max_length, steps
+    and a memory estimate. The FastVLM is built on the meta device (no weights); `<run>/init/`'s config and
+    processor are used when a run exists, else the processor is built in memory. Token counts cover the first
+    `sample` training examples (the stream is endless: every epoch draws fresh ones) and every validation one."""
+    import warnings
+
+    import torch
+
+    from degusta_learn.finetune.collate import Collator
+    from degusta_learn.finetune.inputs import ChatFormat
+    from degusta_learn.finetune.pretrain.base import build_base
+    from degusta_learn.finetune.pretrain.module import monitor_keys
+    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
+    from degusta_learn.finetune.train import count_tokens, meta_model, refuse_over_budget, token_summary, vlm_memory
+    from degusta_learn.finetune.lora import LoraConfig
+    from degusta_learn.finetune.config import ModelConfig
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.trainer import dry_run_trainer_lines, print_dry_run
+
+    catalog, tables, root = catalog_and_tables(cfg.dataset)
+    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+    init = cfg.trainer.path / "init"
+    if (init / "degusta_init.json").is_file():
+        from degusta_learn.finetune.model import load_processor
+
+        model, config = meta_model(str(init), key="model")
+        processor, where = load_processor(str(init), "model"), f"{init}'s config"
+    else:
+        with torch.device("meta"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model, processor = build_base(cfg.model, seed=cfg.seed)
+        config, where = model.config, "model: sizes"
+    total = sum(p.numel() for p in model.parameters())
+    collator = Collator(processor, ChatFormat(processor, model.generation_config), cfg.data.max_length,
+                        config.image_token_id)
+    d = cfg.data
+    make = lambda seed, n, block: PerceptionExamples(catalog, tables, grid, cfg.model.image_size, seed, n,  # noqa: E731
+                                                     d.mix, block, root)
+    train, val = make(cfg.seed, sample, d.batch_size), make(cfg.seed + 1_000_003, d.val_examples, 1)
+    counts, val_counts = count_tokens(train, collator), count_tokens(val, collator)
+    refuse_over_budget(train, counts, collator)
+    refuse_over_budget(val, val_counts, collator)
+    t = cfg.trainer
+    lines = [("model", f"FastVLM from {where}: {total:,} parameters, built on the meta device (random initial "
+                       "weights at run time; nothing loaded)"),
+             ("trainable", f"{total:,} parameters (all: pretraining from scratch)"),
+             ("tokens per example", token_summary(counts, d.max_length, "sampled training examples")
+              + (f"; validation: max {max(c['total'] for c in val_counts)} over {len(val_counts)}" if val_counts else ""))]
+    lines += dry_run_trainer_lines(t, monitor_keys(cfg), d.steps_per_epoch * d.batch_size, d.batch_size)
+    on_gpu = t.accelerator in ("gpu", "cuda") or (t.accelerator == "auto" and torch.cuda.is_available())
+    mem = vlm_memory(ModelConfig(dtype="float32"), LoraConfig(mode="full"), t, config, total, total, d.batch_size,
+                     counts, on_gpu)
+    lines.append(("predicted memory", mem.describe()))
+    print_dry_run("dry run of kind pretrain: nothing loaded, trained or written", lines, log)
+
+
 TRAINER = TrainerSpec(PretrainConfig, run, "pretrain a tiny base VLM from random weights on perception questions "
-                      "about random scenes (never the preference task); exports a Hugging Face model folder")
+                      "about random scenes (never the preference task); exports a Hugging Face model folder",
+                      dry_run=dry_run)

@@ -130,13 +130,16 @@ _KEY_PATTERN = re.compile(r"\b(sk-[A-Za-z0-9_\-*]{4,}|AIza[A-Za-z0-9_\-]{10,})")
 _HEADER_PATTERN = re.compile(
     r"""(?i)((?:proxy-)?authorization|x-api-key|x-goog-api-key|api[-_]?key|access[-_]token)"""
     r"""(["']?\s*[:=]\s*["']?)((?:bearer|basic|token)\s+)?([^\s"',;&}\])]+)""")
+# Credentials inside a URL: `scheme://user:password@host` and secret query parameters (`?key=...&token=...`).
+_URL_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.\-]*://)[^/\s@'\"]+@")
+_QUERY_SECRET = re.compile(r"(?i)([?&](?:key|token|secret|password|passwd|sig|signature|auth)=)([^&#\s\"']+)")
 REDACTED = "***"
 
 
 def redact(text):
     """Text with every API key removed: the values of the key variables in use (and the known defaults),
-    any `Authorization` / `api-key` / `x-api-key` / `x-goog-api-key` header value, and sk-... / AIza...
-    tokens. The one function every write point of the prompting package passes text through (cache,
+    any `Authorization` / `api-key` / `x-api-key` / `x-goog-api-key` header value, credentials in a URL
+    (`https://user:password@host`, `?key=...`, `&token=...`), and sk-... / AIza... tokens. The one function every write point of the prompting package passes text through (cache,
     ledger, predictions diagnostics, error messages); non-text values are returned unchanged."""
     if not isinstance(text, str) or not text:
         return text
@@ -145,6 +148,8 @@ def redact(text):
         if value and len(value) >= 4 and value in text:
             text = text.replace(value, REDACTED)
     text = _HEADER_PATTERN.sub(lambda m: m.group(1) + m.group(2) + (m.group(3) or "") + REDACTED, text)
+    text = _URL_USERINFO.sub(lambda m: m.group(1) + REDACTED + "@", text)
+    text = _QUERY_SECRET.sub(lambda m: m.group(1) + REDACTED, text)
     return _KEY_PATTERN.sub(REDACTED, text)
 
 
