@@ -36,12 +36,43 @@ def _current_umask() -> int:
 _UMASK = _current_umask()
 
 
+def target_problem(path: str | os.PathLike) -> str | None:
+    """Why a file cannot be written at `path` (a folder there, a parent that is a file), or None."""
+    path = Path(path)
+    if str(path) in ("", "."):
+        return "is an empty path; give the path of a file to write"
+    if path.is_dir():
+        return "is a folder; give the path of a file to write"
+    for parent in path.parents:
+        if parent.is_dir():
+            break
+        if parent.exists() or parent.is_symlink():
+            kind = "a broken link" if not parent.exists() else "a file"
+            return f"a parent, {parent}, is {kind}, not a folder"
+    return None
+
+
+def _why(e: OSError) -> str:
+    return f"cannot write here: {e.strerror or e}" if not isinstance(e, IsADirectoryError) else \
+        "is a folder; give the path of a file to write"
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[Any]:
-    """Open a temporary file beside `path`; on success rename it over `path`, on error remove it."""
+    """Open a temporary file beside `path`; on success rename it over `path`, on error remove it.
+
+    A path that cannot be written (a folder, under a file, a read-only or virtual file system, a full
+    disk) raises DegustaError naming the path and the reason; no temporary file is left behind.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    problem = target_problem(path)
+    if problem:
+        raise DegustaError(f"{path}: {problem}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise DegustaError(f"{path}: {_why(e)}") from None
     try:
         with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as f:
             yield f
@@ -49,10 +80,122 @@ def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[Any]:
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get the usual permissions
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as e:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise DegustaError(f"{path}: {_why(e)}") from None
         raise
+
+
+DATASET_FILES = ("catalog.json", "tables.json", "arrangements.jsonl", "ratings.jsonl", "meta.json")
+"""The files of a dataset folder (scene/dataset.py); with the files its meta.json names and everything in its
+subfolders (pictures), an output never replaces them."""
+
+
+def _real(path: str | os.PathLike) -> str:
+    return os.path.realpath(os.path.abspath(path))
+
+
+def _inside(path: str, folder: str) -> bool:
+    return path.startswith(folder.rstrip(os.sep) + os.sep)
+
+
+def _looks_like_dataset(folder: str) -> bool:
+    return all(os.path.isfile(os.path.join(folder, n)) for n in ("catalog.json", "arrangements.jsonl"))
+
+
+def _dataset_part(root: str, out: str) -> str | None:
+    """What of the dataset folder `root` writing `out` (real paths) would replace, or None."""
+    if out == root or _inside(root, out):
+        return f"holds the dataset folder {root}"
+    if not _inside(out, root):
+        return None
+    rel = Path(os.path.relpath(out, root))
+    if len(rel.parts) == 1 and rel.name in DATASET_FILES:
+        return f"is the dataset file {rel} of {root}"
+    if len(rel.parts) > 1 and os.path.lexists(out):
+        return f"is {rel}, a file of the dataset {root}"
+    try:
+        meta = read_json(Path(root) / "meta.json") if os.path.isfile(os.path.join(root, "meta.json")) else {}
+    except DegustaError:
+        meta = {}
+    if isinstance(meta, dict):
+        for key, value in meta.items():
+            if isinstance(value, str) and value and _real(os.path.join(root, value)) == out:
+                return f"is {rel}, the file the dataset's meta.json names as '{key}'"
+    return None
+
+
+def refuse_overwriting_inputs(out: str | os.PathLike, inputs: Iterable[tuple[str, Any]] = (), key: str = "out",
+                              datasets: Iterable[Any] = ()) -> None:
+    """Refuse (DegustaError naming `key` and both paths) an output path that would replace an input.
+
+    `out` is a file the command writes (or an entry of an output folder it replaces). `inputs` are
+    (what, path) pairs of the files the command reads (its config, episodes, predictions, response cache,
+    ...; None skipped): `out` may be none of them (same path, a link to it, or a folder holding it).
+    `datasets` are the dataset folders it reads; any dataset folder enclosing `out` counts too: `out`
+    may not be one of its files (DATASET_FILES, a file meta.json names, anything in its subfolders), but a
+    new file beside them is fine. The one guard of every command that writes (predict, data episodes,
+    evaluate, compare, render).
+    """
+    if str(out).strip() in ("", "."):
+        raise DegustaError(f"{key}: the output path is empty; give the path of a file to write")
+    target = _real(out)
+    for what, path in inputs:
+        if path is None or not str(path).strip():
+            continue
+        real = _real(path)
+        same = real == target
+        if not same and os.path.exists(path) and os.path.exists(out):
+            with contextlib.suppress(OSError):
+                same = os.path.samefile(path, out)
+        if same:
+            raise DegustaError(f"{key}: {out} is {what} ({path}); writing there would destroy it, so nothing "
+                               "was written: choose another path")
+        if _inside(real, target):
+            raise DegustaError(f"{key}: {out} holds {what} ({path}); writing there would remove it, so nothing "
+                               "was written: choose another path")
+    roots = {_real(d) for d in datasets if d is not None and str(d).strip()}
+    parent = os.path.dirname(target)
+    for _ in range(64):  # every dataset folder above `out`, named or not
+        if _looks_like_dataset(parent):
+            roots.add(parent)
+        if os.path.dirname(parent) == parent:
+            break
+        parent = os.path.dirname(parent)
+    for root in sorted(roots):
+        part = _dataset_part(root, target)
+        if part:
+            raise DegustaError(f"{key}: {out} {part}; writing it would change a dataset, so nothing was written: "
+                               "choose a path outside the dataset's files")
+
+
+def check_output_file(out: str | os.PathLike, inputs: Iterable[tuple[str, Any]] = (), key: str = "out",
+                      datasets: Iterable[Any] = ()) -> Path:
+    """Before any work: refuse an output file that would replace an input (refuse_overwriting_inputs) or
+    that cannot be written (a folder, under a file, a folder where files cannot be made); returns the path.
+    Probing makes and removes one temporary file in the output's folder when that folder exists."""
+    if str(out).strip() in ("", "."):
+        raise DegustaError(f"{key}: the output path is empty; give the path of a file to write")
+    path = Path(out)
+    problem = target_problem(path)
+    if problem:
+        raise DegustaError(f"{key}: {path}: {problem}")
+    refuse_overwriting_inputs(out, inputs, key, datasets)
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if folder == path.parent:
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as e:
+            raise DegustaError(f"{key}: {path}: {_why(e)}") from None
+    elif not os.access(folder, os.W_OK | os.X_OK):
+        raise DegustaError(f"{key}: {path}: cannot write here: {folder} is not writable")
+    return path
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:

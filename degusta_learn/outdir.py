@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import refuse_overwriting_inputs
 
 
 @dataclass(frozen=True)
@@ -128,12 +129,19 @@ def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = Tr
 
     `replace=False`: an existing non-empty folder is refused (data generate without --overwrite).
     """
+    if not str(target).strip():
+        raise DegustaError("the output folder path is empty; give the folder to write")
     target = Path(target)
     if target.is_symlink():
         try:
             target = target.resolve(strict=True)
         except (OSError, RuntimeError) as e:
             raise DegustaError(f"{target}: cannot follow the link ({e})") from None
+    for parent in target.parents:
+        if parent.is_dir():
+            break
+        if parent.exists() or parent.is_symlink():
+            raise DegustaError(f"{target}: cannot write here: a parent, {parent}, is a file, not a folder")
     clean_stale(target, kind)
     if target.exists() and not target.is_dir():
         raise DegustaError(f"{target}: exists and is not a folder")
@@ -154,6 +162,24 @@ def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = Tr
                                    "(no degusta generator signature in its meta.json); choose another folder or "
                                    "remove it yourself")
     return target
+
+
+def refuse_replacing_inputs(target: str | os.PathLike, kind: OutputKind, inputs: Sequence[tuple[str, object]] = (),
+                            datasets: Sequence[object] = (), writes: Sequence[str] = (), keep: Sequence[str] = (),
+                            key: str = "out") -> None:
+    """Refuse writing the folder `target` when that would replace or remove an input of the command.
+
+    Writing replaces every entry named in `writes` and moves out every existing entry the command owns
+    (`kind.patterns`) but `keep`: none of them may be, or hold, one of `inputs` ((what, path) pairs) or a
+    dataset file (fileio.refuse_overwriting_inputs, the same guard the file outputs use).
+    """
+    target = Path(target)
+    names = set(writes)
+    if target.is_dir() and not target.is_symlink():
+        with contextlib.suppress(OSError):
+            names |= {p.name for p in target.iterdir() if kind.owns_name(p.name)}
+    for name in sorted(names - set(keep)):
+        refuse_overwriting_inputs(target / name, inputs, key=key, datasets=datasets)
 
 
 def _names(names: Sequence[str]) -> str:

@@ -386,7 +386,7 @@ def test_redact_covers_header_forms(monkeypatch):
     assert redact(f"Authorization: Bearer {KEY}") == "Authorization: Bearer ***"
     assert redact("{'x-api-key': 'abcdef123'}") == "{'x-api-key': '***'}"
     assert redact('"api-key": "zzz-9"') == '"api-key": "***"'
-    assert redact("GET /v1?key=1&api_key=Q7w&x=2") == "GET /v1?key=1&api_key=***&x=2"
+    assert redact("GET /v1?key=1&api_key=Q7w&x=2") == "GET /v1?key=***&api_key=***&x=2"  # a key= query value too
     assert redact(f"the key is {KEY}.") == "the key is ***."
     assert redact("sk-ant-api03-abcdEFGH") == "***"
     assert redact("an answer without secrets: [1, 2]") == "an answer without secrets: [1, 2]"

@@ -45,7 +45,7 @@ def test_render_errors_are_one_line(small_dataset_dir, tmp_path, capsys):
     assert "participant 'nobody'" in capsys.readouterr().err
     assert _run("render", "episode", small_dataset_dir, "--participant", "p000", "--target", 0, "--context", 2,
                 "--method", "logma", "--out", out, "--grid", 0) == 2
-    assert "grid rows" in capsys.readouterr().err
+    assert "--grid" in capsys.readouterr().err  # refused by the flag parser, before anything runs
     assert not out.exists()  # nothing half-written
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json
+from degusta_learn.fileio import atomic_write_json, read_json, refuse_overwriting_inputs
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.prompting.aggregate import aggregate
 from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, read_answer
@@ -52,6 +52,21 @@ from degusta_learn.prompting.prompt import IMAGE_FORMATS, Prompt, build_prompt
 from degusta_learn.scene import Dataset, Episode, Prediction
 
 PER_SAMPLE_BACKENDS = ("anthropic", "gemini")  # one request per sample (no `n` in their APIs)
+LEDGER_MARK = "degusta zero-shot ledger"
+"""The `kind` of every ledger.json the runner writes: only such a file (or one with the keys of ledgers written
+before the mark) is replaced by a later run."""
+_LEDGER_KEYS = {"method", "backend", "model", "n", "episodes", "episodes_done", "cost_usd"}
+
+
+def is_degusta_ledger(path: Path) -> bool:
+    """Whether `path` is a ledger.json a zero-shot run wrote (a file holding the mark or the ledger keys)."""
+    try:
+        if not path.is_file() or path.stat().st_size > 2**20:
+            return False
+        data = read_json(path)
+    except (OSError, DegustaError):
+        return False
+    return isinstance(data, dict) and (data.get("kind") == LEDGER_MARK or set(data) >= _LEDGER_KEYS)
 
 
 @dataclass
@@ -159,6 +174,22 @@ class ZeroShotRun:
         self.schema = answer_schema(self.kind, ds.catalog, self.grid) if cfg.backend.structured_output else None
         self.schema_tokens = 0 if self.schema is None else math.ceil(len(json.dumps(self.schema)) / CHARS_PER_TOKEN)
         self.stop = threading.Event()
+        self.check_paths()
+
+    def check_paths(self) -> None:
+        """Refuse, before any request, a run whose outputs would destroy an input or a user's file: the
+        predictions `out` may not be the response cache or the ledger, the cache may not be the ledger,
+        and an existing ledger.json beside `out` must be a degusta ledger (LEDGER_MARK or its keys)."""
+        refuse_overwriting_inputs(self.out, [("the response cache", self.cache_path),
+                                             ("the ledger.json the run writes beside it", self.ledger_path)])
+        if self.cache_path is not None:
+            refuse_overwriting_inputs(self.cache_path, [("the ledger.json the run writes beside `out`",
+                                                          self.ledger_path)], key="cache")
+        path = self.ledger_path
+        if (path.exists() or path.is_symlink()) and not is_degusta_ledger(path):
+            raise DegustaError(f"{path}: exists and is not a ledger degusta wrote (no {LEDGER_MARK!r} mark or "
+                               "ledger keys); the zero-shot run writes its ledger.json beside `out`, so it is "
+                               "left untouched and nothing was run: choose another `out` folder or move it")
 
     def prompt(self, ep: Episode) -> tuple[Prompt, list[str]]:
         c = self.cfg
@@ -393,7 +424,7 @@ class ZeroShotRun:
         summary = self.ledger.summary()
         diags = [p.diagnostics for p in results.values()]
         atomic_write_json(self.ledger_path, redact_json({
-            "method": c.method, "backend": c.backend.name, "model": c.backend.model, "base_url": c.backend.base_url,
+            "kind": LEDGER_MARK, "method": c.method, "backend": c.backend.name, "model": c.backend.model, "base_url": c.backend.base_url,
             "structured_output": c.backend.structured_output,
             "n": c.n, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),

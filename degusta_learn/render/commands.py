@@ -28,8 +28,8 @@ from pathlib import Path
 from PIL import Image
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_bytes
-from degusta_learn.outdir import OutputKind, write_folder
+from degusta_learn.fileio import atomic_write_bytes, check_output_file
+from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import Renderer, method_liftings, oal_text, order_text
 from degusta_learn.scene import Dataset, load_dataset, make_episodes
@@ -84,6 +84,8 @@ def render_episode(dataset: Dataset | str | Path, participant: str, target: int,
     out = Path(out)
     files = {name: png_bytes(image) for name, image in images.items()}
     files.update({name: content.encode("utf-8") for name, content in texts.items()})
+    check_target(out, EPISODE_FILES)
+    refuse_replacing_inputs(out, EPISODE_FILES, datasets=[ds.root], writes=list(files), key="--out")
     with write_folder(out, EPISODE_FILES) as tmp:
         for name, data in files.items():
             (tmp / name).write_bytes(data)
@@ -92,13 +94,28 @@ def render_episode(dataset: Dataset | str | Path, participant: str, target: int,
 
 def render_catalog(dataset: Dataset | str | Path, out: str | Path, size: int = 448) -> Path:
     """Write the contact sheet of the whole catalog (every type's GoMO sheet, `size` px each)."""
-    ds = _dataset(dataset)
     out = Path(out)
     if out.is_dir():
         raise DegustaError(f"{out}: is a folder; give the PNG file to write, e.g. {out / 'catalog.png'}")
+    if out.suffix.lower() != ".png":
+        raise DegustaError(f"--out: {out}: the contact sheet is a PNG image; give a path ending in .png")
+    ds = _dataset(dataset)
+    check_output_file(out, datasets=[ds.root], key="--out")
+    if out.exists() and not _is_png(out):
+        raise DegustaError(f"--out: {out} exists and is not a PNG image; it is left untouched: remove it yourself "
+                           "or choose another path")
     data = png_bytes(Renderer.for_dataset(ds, size).catalog_sheet())
-    try:
-        atomic_write_bytes(out, data)
-    except OSError as e:
-        raise DegustaError(f"{out}: cannot write ({e.strerror or e})") from None
+    atomic_write_bytes(out, data)  # an unwritable path is a DegustaError naming it (fileio.atomic_open)
     return out
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _is_png(path: Path) -> bool:
+    """Whether the file at `path` starts with the PNG signature (only a PNG is replaced by a contact sheet)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(PNG_SIGNATURE)) == PNG_SIGNATURE
+    except OSError:
+        return False

@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from degusta_learn.config import check_seed
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_jsonl, read_jsonl
+from degusta_learn.fileio import atomic_write_jsonl, check_output_file, read_jsonl
 from degusta_learn.scene.dataset import Dataset
 from degusta_learn.scene.types import TASKS, Episode
 from degusta_learn.scene.validate import MAX_TRIAL, Where, get, require_mapping
@@ -30,6 +31,7 @@ CONTEXT_LENGTHS = (0, 2, 4)
 
 def split_participants(participants: list[str], seed: int = 0) -> dict[str, list[str]]:
     """Deterministic train/val/test split of participant ids (each split sorted)."""
+    seed = check_seed(seed)
     ids = sorted(set(participants))
     if len(ids) < 3:
         raise DegustaError(f"need at least 3 participants to split into train/val/test, got {len(ids)}")
@@ -57,8 +59,9 @@ def _stable_seed(*parts) -> int:
 
 def make_episodes(ds: Dataset, context: int, split: str = "test", seed: int = 0) -> list[Episode]:
     """Episodes of context length `context` for every target trial of every participant in `split`."""
-    if context < 0:
-        raise DegustaError(f"context length must be >= 0, got {context}")
+    seed = check_seed(seed)
+    if isinstance(context, bool) or not isinstance(context, int) or context < 0:
+        raise DegustaError(f"context length must be an integer >= 0, got {context!r}")
     episodes = []
     by_p = ds.by_participant()
     for participant in participants_in(ds, split, seed):
@@ -77,7 +80,10 @@ def make_episodes(ds: Dataset, context: int, split: str = "test", seed: int = 0)
     return episodes
 
 
-def write_episodes(path: str | Path, episodes: list[Episode]) -> None:
+def write_episodes(path: str | Path, episodes: list[Episode], inputs=(), datasets=()) -> None:
+    """Write episodes.jsonl atomically; never over one of `inputs` ((what, path) pairs) or a dataset's files
+    (a dataset folder enclosing `path` counts even when not named in `datasets`)."""
+    check_output_file(path, inputs, key="--out", datasets=datasets)
     atomic_write_jsonl(path, (e.to_json() for e in episodes))
 
 
