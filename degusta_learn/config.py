@@ -36,12 +36,60 @@ MAX_YAML_NODES = 100_000
 """Most YAML nodes a config may expand to, aliases counted at their expanded size ("billion laughs")."""
 
 
-class _BoundedLoader(yaml.SafeLoader):
-    """A SafeLoader whose documents are checked for alias expansion and cycles before they are built."""
+MAX_SEED = 2**32 - 1
+"""Largest seed a config or library entry point takes (numpy's legacy seed range: 0 .. 2**32 - 1)."""
+
+
+def seed_field(default: int = 0) -> Any:
+    """A config `seed` field: an integer from 0 to `MAX_SEED` (checked by `from_dict`, naming the key)."""
+    return bounded(default, 0, MAX_SEED)
+
+
+def check_seed(seed: Any, key: str = "seed") -> int:
+    """`seed` as an int in 0..MAX_SEED, else DegustaError naming `key` (library entry points call this)."""
+    try:
+        import numpy as np
+        ints: tuple = (int, np.integer)
+    except ImportError:  # pragma: no cover - numpy is a dependency
+        ints = (int,)
+    if isinstance(seed, bool) or not isinstance(seed, ints) or not 0 <= int(seed) <= MAX_SEED:
+        raise DegustaError(f"{key}: expected an integer from 0 to {MAX_SEED:,}, got {_show(seed)}")
+    return int(seed)
 
 
 class _YamlTooLarge(Exception):
     pass
+
+
+class _YamlDuplicateKey(Exception):
+    def __init__(self, line: int, key: Any, first: int):
+        super().__init__(f"line {line}: duplicate key {key!r}")
+        self.line, self.key, self.first = line, key, first
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """A SafeLoader whose documents are checked for alias expansion and cycles before they are built, and
+    whose mappings refuse a key given twice (YAML would silently keep the last one)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base` keys may be overridden
+                    continue
+                if not isinstance(key_node, yaml.ScalarNode):
+                    continue  # non-scalar keys are refused later as not names
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    ident = (type(key).__name__, key)
+                    hash(ident)
+                except TypeError:
+                    continue
+                line = key_node.start_mark.line + 1
+                if ident in seen:
+                    raise _YamlDuplicateKey(line, key, seen[ident])
+                seen[ident] = line
+        return super().construct_mapping(node, deep=deep)
 
 
 def _expanded_size(node: yaml.Node, memo: dict[int, int], active: set[int], limit: int) -> int:
@@ -112,6 +160,9 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         raise DegustaError(f"{path}{where}: invalid YAML ({problem})") from None
     except _YamlTooLarge as e:
         raise DegustaError(f"{path}: refused: {e}") from None
+    except _YamlDuplicateKey as e:
+        raise DegustaError(f"{path}:{e.line}: duplicate key {_show(e.key)} (first given on line {e.first}); "
+                           "YAML would silently keep the last value: give each key once") from None
     except RecursionError:
         raise DegustaError(f"{path}: refused: the YAML is nested too deeply") from None
     except (ValueError, OverflowError) as e:  # e.g. an integer of more than 4300 digits
@@ -137,6 +188,8 @@ def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[s
             value = _safe_load(raw) if raw != "" else ""
         except yaml.YAMLError:
             value = raw
+        except _YamlDuplicateKey as e:
+            raise DegustaError(f"--set {key}: duplicate key {_show(e.key)} in the value; give each key once") from None
         except (_YamlTooLarge, RecursionError, ValueError, OverflowError) as e:
             raise DegustaError(f"--set {key}: refused value ({' '.join(str(e).split())[:120] or 'too deep'})") from None
         node = out
@@ -240,7 +293,8 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
         raise DegustaError(errors[0] if len(errors) == 1 else f"{where}: {key}: expected {_name(tp)}, got {_show(value)}")
     if origin is Literal:
         choices = get_args(tp)
-        if value not in choices:
+        # `True == 1` and `1 == 1.0` in Python: a choice matches only a value of its own type.
+        if not any(type(value) is type(c) and value == c for c in choices):
             raise DegustaError(f"{where}: {key}: expected one of {list(choices)}, got {_show(value)}")
         return value
     if origin in (list, tuple):
@@ -253,8 +307,9 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
     if origin is dict:
         if not isinstance(value, dict):
             raise DegustaError(f"{where}: {key}: expected a mapping, got {_show(value)}")
-        _, vt = get_args(tp) or (Any, Any)
-        return {k: _convert(vt, v, where, f"{key}.{k}") for k, v in value.items()}
+        kt, vt = get_args(tp) or (Any, Any)
+        return {_convert(kt, k, where, f"{key} key {_show(k)}"): _convert(vt, v, where, f"{key}.{k}")
+                for k, v in value.items()}
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value, where, prefix=key + ".")
     if tp is bool:
@@ -275,8 +330,12 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
     elif tp is str:
         if isinstance(value, str):
             return value
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and _show(value) == repr(value):
-            return str(value)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            # YAML reads 1e3, 010, 0x1F, 1_000 as numbers: their text is lost, so str(value) could name
+            # another file or model than the one written. Refuse and ask for quotes.
+            raise DegustaError(f"{where}: {key}: expected a string, got the number {_show(value)} "
+                               "(write it in quotes if you mean the text)")
+        raise DegustaError(f"{where}: {key}: expected a string, got {_kind(value)} {_show(value)}")
     else:
         return value
     raise DegustaError(f"{where}: {key}: expected {_name(tp)}, got {_show(value)}")
@@ -292,6 +351,19 @@ def _show(value: Any, n: int = 60) -> str:
         return f"a {type(value).__name__}"
     text = " ".join(text.split())
     return text if len(text) <= n else text[:n] + "..."
+
+
+def _kind(value: Any) -> str:
+    """`a list` / `a mapping` / `true/false` / `null` / `a <type>`: what a wrong-typed user value is."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "the boolean"
+    if isinstance(value, (list, tuple)):
+        return "a list"
+    if isinstance(value, dict):
+        return "a mapping"
+    return f"a {type(value).__name__}"
 
 
 def _name(tp: Any) -> str:

@@ -39,7 +39,7 @@ def test_nan_aware_and_degenerate():
     assert bootstrap_ci([0.4]) == (0.4, 0.4, 0.4)
     with pytest.raises(DegustaError, match="alpha"):
         bootstrap_ci(x, alpha=1.5)
-    with pytest.raises(DegustaError, match="n_resamples"):
+    with pytest.raises(DegustaError, match="n_bootstrap"):
         bootstrap_ci(x, n_resamples=0)
 
 

@@ -33,19 +33,20 @@ import hashlib
 import itertools
 import json
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from degusta_learn.config import load_config
+from degusta_learn.config import bounded, load_config, seed_field
 from degusta_learn.errors import DegustaError
-from degusta_learn.evaluate.scoring import EpisodeRow, check_records, score_predictions
+from degusta_learn.evaluate.scoring import METHOD_NAME, EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import rank_methods, summarize
-from degusta_learn.fileio import atomic_write_json
+from degusta_learn.fileio import atomic_write_json, refuse_overwriting_inputs
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
-from degusta_learn.outdir import OutputKind, check_target, write_folder
+from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
+from degusta_learn.render.lifting import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
+from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
 from degusta_learn.scene import (
     CONTEXT_LENGTHS, Dataset, Episode, Prediction, load_dataset, make_episodes, read_episodes, read_predictions,
     write_predictions,
@@ -64,8 +65,9 @@ COMPARISON = OutputKind("comparison report", ("report.md", "report.html", "metri
                                               "plots", "qualitative", "predictions"))
 """What `degusta compare` writes into `out` (as one set; `predictions/` is carried over)."""
 
-METHOD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,79}")
-"""A method name is also a file name under `<out>/predictions/`: a safe slug."""
+MAX_QUALITATIVE = 100
+"""Most random qualitative episodes a comparison draws (each is one image per method)."""
+
 
 REMOTE_BACKENDS = ("openai", "anthropic", "gemini")
 """Backends whose answers may cost money: their stale predictions are refused, never silently recomputed."""
@@ -109,14 +111,14 @@ class CompareConfig:
     """Participant split of the episodes."""
     episodes: str | None = None
     """A fixed episodes.jsonl instead of `contexts` + `split`."""
-    seed: int = 0
-    """Seed of the split, bootstrap and the random qualitative episodes."""
-    n_bootstrap: int = 1000
-    """Bootstrap resamples of the intervals (more: tighter estimates of the interval, slower)."""
-    qualitative: int = 3
-    """Random episodes drawn side by side (plus the best and worst episode of the top-ranked method)."""
-    image_size: int = 256
-    """Pixel size of each qualitative panel."""
+    seed: int = seed_field(0)
+    """Seed of the split, bootstrap and the random qualitative episodes (0 .. 2**32 - 1)."""
+    n_bootstrap: int = bounded(1000, 1, MAX_RESAMPLES)
+    """Bootstrap resamples of the intervals (more: tighter estimates of the interval, slower; 1 .. 1,000,000)."""
+    qualitative: int = bounded(3, 0, MAX_QUALITATIVE)
+    """Random episodes drawn side by side (plus the best and worst episode of the top-ranked method; 0 .. 100)."""
+    image_size: int = bounded(256, MIN_IMAGE_SIZE, MAX_IMAGE_SIZE)
+    """Pixel size of each qualitative panel (64 .. 4096)."""
     title: str = "Comparison report"
 
     def __post_init__(self):
@@ -128,10 +130,18 @@ class CompareConfig:
         bad = [k for k in self.contexts if k not in CONTEXT_LENGTHS]
         if bad:
             raise DegustaError(f"contexts: expected values in {list(CONTEXT_LENGTHS)}, got {bad}")
+        if not self.episodes:
+            if not self.contexts:
+                raise DegustaError(f"contexts: expected at least one context length (from {list(CONTEXT_LENGTHS)}), "
+                                   "got []; or set episodes")
+            twice = sorted({k for k in self.contexts if self.contexts.count(k) > 1})
+            if twice:
+                raise DegustaError(f"contexts: context length {twice[0]} is given twice in {self.contexts}; "
+                                   "give each length once")
 
 
 def run_compare(path: str | Path, overrides: list[str] | None = None, log=print) -> Path:
-    return compare(load_config(CompareConfig, path, overrides), log=log)
+    return compare(load_config(CompareConfig, path, overrides), log=log, config_path=path)
 
 
 def comparison_episodes(cfg: CompareConfig, ds: Dataset) -> list[Episode]:
@@ -142,7 +152,7 @@ def comparison_episodes(cfg: CompareConfig, ds: Dataset) -> list[Episode]:
 
 def _runs(entry: MethodEntry, cfg: CompareConfig, pred_dir: Path) -> list[tuple[int | None, list[str], Path]]:
     """(context length, predict overrides, predictions file) of each run of a config method."""
-    runs = [(None, [f"episodes={cfg.episodes}"])] if cfg.episodes else \
+    runs = [(None, [f"episodes={cfg.episodes}", "context=null"])] if cfg.episodes else \
         [(k, ["episodes=null", f"context={k}", f"split={cfg.split}"]) for k in cfg.contexts]
     out = []
     for k, keys in runs:
@@ -374,7 +384,24 @@ def paired_table(rows: list[EpisodeRow], methods: list[str], n_bootstrap: int, s
     return out
 
 
-def compare(cfg: CompareConfig, log=print) -> Path:
+def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, config_path) -> None:
+    """No file compare writes (the report set, `predictions/*`) may be one of its inputs or a dataset file."""
+    inputs = [("the compare config", config_path), ("the episodes file", cfg.episodes),
+              *((f"the predictions file of method {e.name!r}", e.predictions) for e in cfg.methods),
+              *((f"the predict config of method {e.name!r}", e.config) for e in cfg.methods)]
+    refuse_replacing_inputs(out, COMPARISON, inputs, datasets=[cfg.dataset], writes=COMPARISON.patterns,
+                            keep=("predictions",))
+    for entry in cfg.methods:
+        written = [pred_dir / f"{entry.name}.jsonl"]
+        if entry.config is not None:
+            written += [p for _, _, path in _runs(entry, cfg, pred_dir) for p in (path, fingerprint_path(path))]
+        for path in written:
+            mine = f"the predictions file of method {entry.name!r}"  # predictions/NAME.jsonl may be rewritten
+            own = [i for i in inputs if not (path == written[0] and i[0] == mine)]  # from its own content
+            refuse_overwriting_inputs(path, own, key="out", datasets=[cfg.dataset])
+
+
+def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None) -> Path:
     """Run/collect every method, score them on the same episodes and write the report folder."""
     from degusta_learn.evaluate.compare_report import write_compare_report
 
@@ -384,6 +411,7 @@ def compare(cfg: CompareConfig, log=print) -> Path:
     ep_map = {e.id: e for e in episodes}
     pred_dir = out / "predictions"
     _output_names(cfg, pred_dir)
+    _refuse_replacing_inputs(cfg, out, pred_dir, config_path)
     ds_id = dataset_identity(ds)
     check_stale_paid(cfg, ds, episodes, pred_dir, ds_id)
     predictions, failures = {}, {}

@@ -13,6 +13,7 @@ from pathlib import Path
 import markdown
 import numpy as np
 
+from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
 from degusta_learn.evaluate.report import (
     METRIC_NOTES, acceptability_lines, context_table, few_object_warnings, method_table, write_per_episode_csv,
@@ -97,6 +98,8 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
         chosen += [(f"best of {ref} (top-ranked)", best.episode), (f"worst of {ref} (top-ranked)", worst.episode)]
     episodes = sorted({r.episode for r in rows})
     rng = np.random.default_rng(cfg.seed)
+    if isinstance(cfg.qualitative, bool) or not isinstance(cfg.qualitative, int) or cfg.qualitative < 0:
+        raise DegustaError(f"qualitative: expected a number of episodes >= 0, got {cfg.qualitative!r}")
     for i in rng.choice(len(episodes), size=min(cfg.qualitative, len(episodes)), replace=False):
         chosen.append(("random", episodes[int(i)]))
     renderer = Renderer.for_dataset(ds, size=cfg.image_size)

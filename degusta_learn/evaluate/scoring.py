@@ -20,6 +20,9 @@ from degusta_learn.scene import Dataset, Episode, Prediction
 _CONTEXT_IN_ID = re.compile(r"/k(\d+)$")
 EPISODE_ID = re.compile(r"(?P<participant>.+)/t(?P<target>\d{1,9})/k(?P<context>\d{1,9})")
 """The ids `make_episodes` gives: participant/tTARGET/kCONTEXT."""
+METHOD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,79}")
+"""A method name is a safe slug (letters, digits, '.', '_', '-'; at most 80 characters): it names files under
+compare's `<out>/predictions/` and rows of the reports, so a predictions file's `method` must be one too."""
 
 CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", "failed", "n_gt", "n_pred",
                "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd", "tokens",
@@ -96,6 +99,9 @@ def check_records(path: str | Path, predictions: list[Prediction], ds: Dataset,
     bad_usage = 0
     for lineno, pred in zip(lines, predictions):
         where = f"{path}:{lineno}"
+        if not isinstance(pred.method, str) or not METHOD_NAME.fullmatch(pred.method):
+            raise DegustaError(f"{where}: field 'method': {pred.method!r:.100} is not a safe method name (letters, "
+                               "digits, '.', '_', '-'; starting with a letter or digit; at most 80 characters)")
         if one_method:
             if first_method is None:
                 first_method = (pred.method, lineno)
@@ -132,6 +138,10 @@ def check_records(path: str | Path, predictions: list[Prediction], ds: Dataset,
                                f"{pred.target} in the dataset")
         if ep is None:
             k = int(m.group("context"))
+            if isinstance(claimed, list) and len(claimed) != k:
+                raise DegustaError(f"{where}: field 'episode': {pred.episode!r} names context length {k}, but the "
+                                   f"record's diagnostics.context holds {len(claimed)} trials {claimed!r}"[:400]
+                                   + "; fix the id or pass the episode set with --episodes")
             n_trials = len(ds.trials_of(pred.participant))
             if k >= n_trials:
                 raise DegustaError(f"{where}: field 'episode': {pred.episode!r} asks for {k} context trials, but "

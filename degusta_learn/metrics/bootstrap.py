@@ -14,23 +14,30 @@ from __future__ import annotations
 
 import numpy as np
 
+from degusta_learn.config import _show, check_seed
 from degusta_learn.errors import DegustaError
 
 _CHUNK = 2_000_000  # indices drawn per chunk
+MAX_RESAMPLES = 1_000_000
+"""Most bootstrap resamples (the means alone take 8 bytes each; more adds nothing to a 95% interval)."""
 
 
-def _check(n_resamples: int, alpha: float) -> None:
-    if not isinstance(n_resamples, int | np.integer) or n_resamples < 1:
-        raise DegustaError(f"n_resamples: expected a positive integer, got {n_resamples!r}")
-    if not 0.0 < alpha < 1.0:
-        raise DegustaError(f"alpha: expected a number between 0 and 1, got {alpha!r}")
+def _check(n_resamples: int, alpha: float, seed: int) -> None:
+    # Named as the user knows it: `--bootstrap` of evaluate, `n_bootstrap` of a compare config.
+    if isinstance(n_resamples, bool) or not isinstance(n_resamples, int | np.integer) \
+            or not 1 <= n_resamples <= MAX_RESAMPLES:
+        raise DegustaError(f"bootstrap (n_bootstrap): expected a number of resamples from 1 to "
+                           f"{MAX_RESAMPLES:,}, got {_show(n_resamples)}")
+    check_seed(seed)
+    if not isinstance(alpha, int | float | np.floating) or not 0.0 < alpha < 1.0:
+        raise DegustaError(f"alpha: expected a number between 0 and 1, got {_show(alpha)}")
 
 
 def _resampled_means(x: np.ndarray, n_resamples: int, seed: int) -> np.ndarray:
     """(n_resamples,) means of bootstrap resamples of x (n,)."""
     rng = np.random.default_rng(seed)
     n = len(x)
-    out = np.empty(n_resamples)
+    out = np.empty(int(n_resamples))
     step = max(1, _CHUNK // n)
     for start in range(0, n_resamples, step):
         b = min(step, n_resamples - start)
@@ -51,7 +58,7 @@ def bootstrap_ci(values, n_resamples: int = 1000, seed: int = 0, alpha: float = 
     Returns:
         (mean, lo, hi); all nan when no value is finite, (v, v, v) for a single value.
     """
-    _check(n_resamples, alpha)
+    _check(n_resamples, alpha, seed)
     x = np.asarray(values, dtype=float).ravel()
     x = x[~np.isnan(x)]
     if x.size == 0:
@@ -75,7 +82,7 @@ def paired_bootstrap(a, b, n_resamples: int = 1000, seed: int = 0, alpha: float 
     Returns:
         {"diff": mean(a - b), "lo": ..., "hi": ..., "p_value": ...}; all nan without a complete pair.
     """
-    _check(n_resamples, alpha)
+    _check(n_resamples, alpha, seed)
     xa, xb = np.asarray(a, dtype=float).ravel(), np.asarray(b, dtype=float).ravel()
     if xa.shape != xb.shape:
         raise DegustaError(f"paired_bootstrap: {xa.size} values vs {xb.size}; both methods must score the same episodes")

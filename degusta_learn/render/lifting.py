@@ -45,6 +45,10 @@ from degusta_learn.scene import Arrangement, Catalog, Dataset, Placement, Table,
 METHODS = {"louma": ("oal", "uma"), "logma": ("oal", "gma"), "mouma": ("gomo", "uma"), "mogma": ("gomo", "gma")}
 LIFTINGS = ("oal", "gomo", "uma", "gma")
 GMA_MARGIN = 0.05  # label margin of GMA images, as a fraction of `size`
+MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 64, 4096
+"""Image sizes a Renderer draws (pixels, longer side): 4096 px is 48 MB of RGB; larger is refused, not drawn."""
+MAX_SHEET_PIXELS = 2**27
+"""Most pixels of a catalog contact sheet (about 400 MB of RGB): many types at a large size are refused."""
 SHEET_BG, TILE_BG, TILE_EDGE = (232, 229, 222), (246, 244, 240), (206, 202, 194)
 PIL_BLOCKS = 64  # image memory blocks Pillow keeps for reuse (see _reuse_image_memory)
 
@@ -77,8 +81,11 @@ class Renderer:
     """Draws the lifted images of one catalog and table set at `size` pixels (longer image side)."""
 
     def __init__(self, catalog: Catalog, tables: dict[int, Table], root: Path | str | None = None, size: int = 448):
-        if isinstance(size, bool) or not isinstance(size, int) or size < 64:
-            raise DegustaError(f"size: expected an integer of at least 64 pixels, got {size!r}")
+        if isinstance(size, bool) or not isinstance(size, int) or not MIN_IMAGE_SIZE <= size <= MAX_IMAGE_SIZE:
+            shown = f"an integer of {len(str(abs(size)))} digits" if isinstance(size, int) and abs(size) > 10**12 \
+                else " ".join(repr(size).split())[:60]
+            raise DegustaError(f"size (image_size): expected an image size from {MIN_IMAGE_SIZE} to "
+                               f"{MAX_IMAGE_SIZE:,} pixels, got {shown}")
         self.catalog, self.tables, self.size = catalog, dict(tables), size
         self.root = str(root) if root is not None else None
         self.margin = max(8, round(size * GMA_MARGIN))
@@ -268,6 +275,14 @@ class Renderer:
         cols = math.ceil(math.sqrt(len(types)))
         rows = math.ceil(len(types) / cols)
         gap = max(2, self.size // 100)
+        width, height = cols * self.size + (cols - 1) * gap, rows * self.size + (rows - 1) * gap
+        if width * height > MAX_SHEET_PIXELS:
+            fit = max(s for s in range(MIN_IMAGE_SIZE - 1, self.size)
+                      if s < MIN_IMAGE_SIZE or (cols * s + (cols - 1) * max(2, s // 100))
+                      * (rows * s + (rows - 1) * max(2, s // 100)) <= MAX_SHEET_PIXELS)
+            hint = f"use a size of at most {fit}" if fit >= MIN_IMAGE_SIZE else "the catalog has too many types"
+            raise DegustaError(f"size: a contact sheet of {len(types)} types at {self.size} px would be "
+                               f"{width:,} x {height:,} pixels (at most {MAX_SHEET_PIXELS:,}); {hint}")
         sheet = Image.new("RGB", (cols * self.size + (cols - 1) * gap, rows * self.size + (rows - 1) * gap), (90, 90, 90))
         for i, type_ in enumerate(types):
             r, c = divmod(i, cols)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from degusta_learn.config import check_seed
 from degusta_learn.errors import DegustaError
 from degusta_learn.outdir import OutputKind, write_folder
 from degusta_learn.scene import save_dataset, write_episodes
@@ -58,6 +59,7 @@ def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool 
     """
     if name not in GENERATORS:
         raise DegustaError(f"unknown dataset {name!r} (expected one of {', '.join(GENERATORS)})")
+    seed = check_seed(seed)  # 0..2**32-1: meta.json then holds a seed `data validate` accepts
     out = Path(out)
     with write_folder(out, DATASET, replace=overwrite) as tmp:
         if name == "naturalistic":

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from degusta_learn.config import check_seed
 from degusta_learn.scene.dataset import validate_dataset
 from degusta_learn.scene import Arrangement, Dataset, default_catalog, default_tables
 from degusta_learn.synth.ratings import simulate_rating
@@ -31,6 +32,7 @@ DESCRIPTION = ("SYNTHETIC stand-in for the DegustaBot naturalistic study: 199 si
 
 def naturalistic_with_styles(seed: int = 0, n_participants: int = N_PARTICIPANTS) -> tuple[Dataset, list[Style]]:
     """The naturalistic dataset and the latent style of every participant."""
+    seed = check_seed(seed)  # 0..2**32-1: meta.json then holds a seed `data validate` accepts
     catalog = default_catalog()
     tables = {t.id: t for t in default_tables()}
     table_ids = sorted(tables)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from degusta_learn.config import check_seed
 from degusta_learn.scene.dataset import validate_dataset
 from degusta_learn.scene import Arrangement, Catalog, Dataset, Episode, default_catalog, default_tables
 from degusta_learn.synth.realize import MIN_OBJECTS, sample_arrangement
@@ -101,6 +102,7 @@ def simulated_episodes(styles: list[Style]) -> list[Episode]:
 
 def simulated_with_styles(seed: int = 0) -> tuple[Dataset, list[Style], list[Episode]]:
     """The simulated dataset, its 18 styles and its 72 episodes."""
+    seed = check_seed(seed)  # 0..2**32-1: meta.json then holds a seed `data validate` accepts
     catalog = default_catalog()
     tables = {t.id: t for t in default_tables() if t.id in TABLES}
     styles = simulated_styles(catalog)
