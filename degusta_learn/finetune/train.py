@@ -229,8 +229,9 @@ def meta_model(source: str, key: str = "model.name"):
 
 def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: int, batch_size: int,
                counts: list[dict], on_gpu: bool):
-    """The dry run's memory estimate of a VLM fine-tune (see `trainer.estimate_memory` for the model)."""
-    from degusta_learn.trainer import estimate_memory, transformer_activations, world_size
+    """The dry run's memory estimate of a VLM fine-tune (see `dryrun.estimate_memory` for the model)."""
+    from degusta_learn.dryrun import estimate_memory, transformer_activations
+    from degusta_learn.trainer import world_size
 
     dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu else "float32")
     param_bytes = {"float32": 4, "bfloat16": 2, "float16": 2}[dtype]
@@ -283,7 +284,7 @@ def dry_run(cfg: FinetuneConfig, log=print) -> None:
     from degusta_learn.finetune.module import monitor_keys
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
-    from degusta_learn.trainer import dry_run_trainer_lines, print_dry_run
+    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
 
     ds = load_dataset(cfg.dataset)
     grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)

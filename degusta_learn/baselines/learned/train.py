@@ -66,8 +66,8 @@ def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> No
     (augmentations move and relabel objects but keep their number). Refuses an arrangement with more
     objects than model.max_objects (the run would fail on it mid-epoch).
     """
-    from degusta_learn.trainer import (dry_run_trainer_lines, estimate_memory, print_dry_run,
-                                       transformer_activations, world_size)
+    from degusta_learn.dryrun import dry_run_trainer_lines, estimate_memory, print_dry_run, transformer_activations
+    from degusta_learn.trainer import world_size
 
     ds = ds if ds is not None else load_dataset(cfg.data.dataset)
     most = max(ds.arrangements, key=lambda a: len(a.placements), default=None)

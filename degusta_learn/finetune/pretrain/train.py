@@ -219,7 +219,7 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     from degusta_learn.finetune.lora import LoraConfig
     from degusta_learn.finetune.config import ModelConfig
     from degusta_learn.render.grid import Grid
-    from degusta_learn.trainer import dry_run_trainer_lines, print_dry_run
+    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
 
     catalog, tables, root = catalog_and_tables(cfg.dataset)
     grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
