@@ -345,18 +345,24 @@ def training_run(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> I
     seed_everything(cfg.seed)
     run = cfg.path
     created = _first_missing(run)
-    try:
+    with _user_errors(run, created if is_global_zero() else None):
         yield run
+
+
+@contextlib.contextmanager
+def _user_errors(run: Path, created: Path | None) -> Iterator[None]:
+    """A DegustaError, or a Lightning ValueError/TypeError naming a trainer key (e.g. val_check_interval >
+    batches per epoch), removes the run folder this call `created` (None: keep it) and leaves as one line."""
+    try:
+        yield
     except DegustaError:
-        if is_global_zero():
-            _remove_if_empty_run(run, created)
+        _remove_if_empty_run(run, created)
         raise
-    except (ValueError, TypeError) as e:  # Lightning's checks of trainer values against the data (e.g.
-        key = _trainer_key_in(str(e))      # val_check_interval > batches per epoch) become one-line errors
+    except (ValueError, TypeError) as e:
+        key = _trainer_key_in(str(e))
         if key is None:
             raise
-        if is_global_zero():
-            _remove_if_empty_run(run, created)
+        _remove_if_empty_run(run, created)
         first = " ".join(str(e).split(". ")[0].split())[:240]
         raise DegustaError(f"trainer.{key}: {first}") from None
 
@@ -582,20 +588,9 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
     created = _first_missing(cfg.path) if zero else None
     run, ckpt = prepare_run_dir(cfg, full_config, write=zero)
     seed_everything(cfg.seed)
-    try:
-        with warnings.catch_warnings():  # the run folder holds config.yaml (and logs) by design
-            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
-            trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
-    except DegustaError:
-        _remove_if_empty_run(run, created)
-        raise
-    except (ValueError, TypeError) as e:  # Lightning's checks of trainer values against the data (e.g.
-        key = _trainer_key_in(str(e))      # val_check_interval > batches per epoch) become one-line errors
-        if key is None:
-            raise
-        _remove_if_empty_run(run, created)
-        first = " ".join(str(e).split(". ")[0].split())[:240]
-        raise DegustaError(f"trainer.{key}: {first}") from None
+    with _user_errors(run, created), warnings.catch_warnings():  # the run folder holds config.yaml by design
+        warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
     if not trainer.interrupted:  # last.ckpt is written at each validation; also keep the steps after the last one
         trainer.save_checkpoint(run / LAST, weights_only=False)  # full state (optimizer too), to resume
     return run
