@@ -12,12 +12,11 @@ from __future__ import annotations
 import json
 import socket
 import sqlite3
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 import yaml
 from conftest import make_small_dataset
+from loopback import Loopback, chat_completion, json_reply
 
 from degusta_learn.cli import main as cli_main
 from degusta_learn.prompting.answers import AnswerParseError, parse_answer, read_answer
@@ -106,52 +105,22 @@ def test_item_policy_drops_bad_items_and_keeps_the_rest():
 
 # ----------------------------------------------------------------------------- a scriptable loopback server
 
-class Server:
+class Server(Loopback):
     """HTTP on 127.0.0.1 speaking OpenAI chat completions. `script` entries (status, content_type, body
     bytes or a callable(request) -> bytes[, headers]) are consumed first, then `answer(request, i)` for
     choice i. Each request records its path, body and headers."""
 
     def __init__(self, answer=lambda req, i: GOOD):
-        self.answer, self.script, self.requests, self.lock = answer, [], [], threading.Lock()
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):
-                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
-                req = {"path": self.path, "body": body, "headers": dict(self.headers)}
-                with server.lock:
-                    server.requests.append(req)
-                    status, ctype, payload, *extra = server.script.pop(0) if server.script else server.reply(req)
-                data = payload(req) if callable(payload) else payload
-                self.send_response(status)
-                self.send_header("Content-Type", ctype)
-                for k, v in (extra[0] if extra else {}).items():
-                    self.send_header(k, v)
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
-
-            def log_message(self, *args):
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
-        threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True).start()
+        self.answer = answer
+        super().__init__(self.reply)
 
     def reply(self, req):
         body = req["body"]
-        choices = [{"index": i, "message": {"role": "assistant", "content": self.answer(req, i)},
-                    "finish_reason": "stop"} for i in range(body.get("n", 1))]
-        return 200, "application/json", json.dumps({
-            "id": "x", "object": "chat.completion", "created": 0, "model": body["model"], "choices": choices,
-            "usage": {"prompt_tokens": 100, "completion_tokens": 10, "total_tokens": 110}}).encode()
+        texts = [self.answer(req, i) for i in range(body.get("n", 1))]
+        return json_reply(200, chat_completion(body["model"], texts, completion_tokens=10))
 
     def fail(self, status, body=b'{"error": {"message": "oops"}}', ctype="application/json", times=1, headers=None):
         self.script += [(status, ctype, body, headers or {})] * times
-
-    def close(self):
-        self.httpd.shutdown()
-        self.httpd.server_close()
 
 
 @pytest.fixture

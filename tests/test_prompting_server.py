@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import base64
 import json
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 import yaml
 from conftest import make_small_dataset
+from loopback import Loopback, chat_completion, json_reply
 
 from degusta_learn.cli import main as cli_main
 from degusta_learn.errors import DegustaError
@@ -30,52 +29,20 @@ GOOD = "Here you go:\n```python\n[{'type': 'plate', 'id': 75, 'position': ['D4',
 BAD = "I would place a plate in the middle."
 
 
-class FakeOpenAI:
+class FakeOpenAI(Loopback):
     """A loopback OpenAI-compatible server; `script` entries are consumed first, then `answer`."""
 
     def __init__(self, answer=lambda body, i: GOOD, max_choices: int | None = None):
         self.answer, self.max_choices = answer, max_choices
-        self.script: list[tuple[int, dict, dict]] = []
-        self.requests: list[dict] = []
-        self.lock = threading.Lock()
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):
-                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
-                with server.lock:
-                    server.requests.append({"path": self.path, "body": body,
-                                            "auth": self.headers.get("Authorization")})
-                    status, headers, payload = server.script.pop(0) if server.script else server.reply(body)
-                data = json.dumps(payload).encode()
-                self.send_response(status)
-                for k, v in {"Content-Type": "application/json", **headers}.items():
-                    self.send_header(k, v)
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
-
-            def log_message(self, *args):
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
-        threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True).start()
+        super().__init__(lambda req: self.reply(req["body"]))
 
     def reply(self, body):
         k = body.get("n", 1) if self.max_choices is None else min(self.max_choices, body.get("n", 1))
-        choices = [{"index": i, "message": {"role": "assistant", "content": self.answer(body, i)},
-                    "finish_reason": "stop"} for i in range(k)]
-        return 200, {}, {"id": "chatcmpl-x", "object": "chat.completion", "created": 0, "model": body["model"],
-                         "choices": choices, "usage": {"prompt_tokens": 1000, "completion_tokens": 10 * k,
-                                                       "total_tokens": 1000 + 10 * k}}
+        return json_reply(200, chat_completion(body["model"], [self.answer(body, i) for i in range(k)],
+                                               prompt_tokens=1000))
 
     def error(self, status, message="error", headers=None):
-        self.script.append((status, headers or {}, {"error": {"message": message, "type": "x", "code": None}}))
-
-    def close(self):
-        self.httpd.shutdown()
-        self.httpd.server_close()
+        self.script.append(json_reply(status, {"error": {"message": message, "type": "x", "code": None}}, headers))
 
 
 @pytest.fixture
@@ -115,7 +82,7 @@ def test_request_shape_and_predictions(tmp_path, server, dataset_dir, monkeypatc
     assert len(server.requests) == 9  # 3 participants x 3 targets, n=5 in ONE request each
     req = server.requests[0]
     body = req["body"]
-    assert req["path"] == "/v1/chat/completions" and req["auth"] == f"Bearer {FAKE_KEY}"
+    assert req["path"] == "/v1/chat/completions" and req["headers"]["authorization"] == f"Bearer {FAKE_KEY}"
     assert body["model"] == "fake-model" and body["n"] == 5 and body["temperature"] == 0.7
     content = body["messages"][0]["content"]
     images = [c["image_url"]["url"] for c in content if c["type"] == "image_url"]
@@ -236,7 +203,7 @@ def test_the_api_key_is_never_written(tmp_path, server, dataset_dir, monkeypatch
     server.error(500, f"internal error for key {FAKE_KEY}")
     path = write_config(tmp_path, server, dataset_dir, max_retries=0, backend={"api_key_env": "MY_VLM_KEY"})
     assert cli_main(["predict", "--config", str(path)]) == 2  # one episode unanswered: incomplete run
-    assert server.requests[0]["auth"] == f"Bearer {FAKE_KEY}"
+    assert server.requests[0]["headers"]["authorization"] == f"Bearer {FAKE_KEY}"
     server.error(401, f"Incorrect API key provided: {FAKE_KEY}")
     assert cli_main(["predict", "--config", str(path), "--set", "cache=off"]) == 2
     captured = capsys.readouterr()

@@ -19,14 +19,13 @@ from __future__ import annotations
 import json
 import random
 import re
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from types import SimpleNamespace
 
 import jsonschema
 import pytest
 import yaml
 from conftest import make_small_dataset
+from loopback import Loopback, chat_completion, json_reply
 
 from degusta_learn.cli import main as cli_main
 from degusta_learn.errors import DegustaError
@@ -94,39 +93,26 @@ def sample(schema: dict, rng: random.Random, max_len: int = 6):
 
 # ----------------------------------------------------------------------------- a loopback server
 
-class Loopback:
-    """HTTP on 127.0.0.1: `reply(path, body) -> (status, payload)`; every request's path and body kept."""
+def serve(reply):
+    """A loopback server answering JSON from `reply(path, body) -> (status, payload)`; a failed shape check
+    (an AssertionError in `reply`: a malformed request) is answered as a 400."""
+    def respond(req):
+        try:
+            status, payload = reply(req["path"], req["body"])
+        except AssertionError as e:
+            status, payload = 400, {"error": {"message": f"shape check failed: {e}", "type": "x"}}
+        return json_reply(status, payload)
+    return Loopback(respond)
 
-    def __init__(self, reply):
-        self.reply, self.requests, self.lock = reply, [], threading.Lock()
-        server = self
 
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):
-                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
-                with server.lock:
-                    server.requests.append({"path": self.path, "body": body})
-                try:
-                    status, payload = server.reply(self.path, body)
-                except AssertionError as e:  # a malformed request: the test sees it as a 400
-                    status, payload = 400, {"error": {"message": f"shape check failed: {e}", "type": "x"}}
-                data = json.dumps(payload).encode()
-                self.send_response(status)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
-
-            def log_message(self, *args):
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.root = f"http://127.0.0.1:{self.httpd.server_address[1]}"
-        threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True).start()
-
-    def close(self):
-        self.httpd.shutdown()
-        self.httpd.server_close()
+def run_served(reply, tmp_path, dataset_dir, prefix="", **extra):
+    """`run_predict` against a server answering `reply` at its root + `prefix`: the output, the requests."""
+    server = serve(reply)
+    try:
+        out = run_predict(config(tmp_path, server.root + prefix, dataset_dir, **extra))
+    finally:
+        server.close()
+    return out, server.requests
 
 
 def openai_reply(answer):
@@ -135,11 +121,7 @@ def openai_reply(answer):
 
     def reply(path, body):
         assert path == "/v1/chat/completions"
-        choices = [{"index": i, "message": {"role": "assistant", "content": answer(body, rng)},
-                    "finish_reason": "stop"} for i in range(body.get("n", 1))]
-        return 200, {"id": "c", "object": "chat.completion", "created": 0, "model": body["model"],
-                     "choices": choices, "usage": {"prompt_tokens": 100, "completion_tokens": 10 * len(choices),
-                                                   "total_tokens": 100 + 10 * len(choices)}}
+        return 200, chat_completion(body["model"], [answer(body, rng) for _ in range(body.get("n", 1))])
     return reply
 
 
@@ -233,13 +215,9 @@ def test_the_parser_takes_the_json_object_anywhere():
 
 @pytest.mark.parametrize("method", ["mogma", "louma"])
 def test_openai_requests_carry_the_strict_schema(tmp_path, dataset_dir, method):
-    server = Loopback(openai_reply(schema_model))
-    try:
-        out = run_predict(config(tmp_path, server.root + "/v1", dataset_dir, method=method))
-    finally:
-        server.close()
-    assert len(server.requests) == 9
-    body = server.requests[0]["body"]
+    out, requests = run_served(openai_reply(schema_model), tmp_path, dataset_dir, "/v1", method=method)
+    assert len(requests) == 9
+    body = requests[0]["body"]
     assert body["n"] == 3
     assert 'Give your answer as a JSON object formatted as follows: {"objects": [{"type": object_type' in \
         body["messages"][0]["content"][-1]["text"]
@@ -252,7 +230,7 @@ def test_a_server_that_ignores_the_schema(tmp_path, dataset_dir):
     # free text anyway: parsed as usual; prose or garbage: a counted failure, never a traceback
     answers = ["[{'type': 'plate', 'id': 75, 'position': ['D4'], 'cardinal_direction': 'N'}]",
                "I would put the plate in the middle.", '{"objects": [{"type": "plate", "id": ']
-    server = Loopback(openai_reply(lambda body, rng: answers[len(server.requests) % 3]))
+    server = serve(openai_reply(lambda body, rng: answers[len(server.requests) % 3]))
     try:
         out = run_predict(config(tmp_path, server.root + "/v1", dataset_dir, concurrency=1))
     finally:
@@ -271,7 +249,7 @@ def test_a_server_that_ignores_the_schema(tmp_path, dataset_dir):
 def test_a_server_that_refuses_the_schema_stops_with_one_line(tmp_path, dataset_dir, capsys):
     def refuse(path, body):
         return 400, {"error": {"message": "response_format json_schema is not supported", "type": "invalid"}}
-    server = Loopback(refuse)
+    server = serve(refuse)
     try:
         path = config(tmp_path, server.root + "/v1", dataset_dir)
         assert cli_main(["predict", "--config", str(path)]) == 2
@@ -286,7 +264,7 @@ def test_a_server_that_refuses_the_schema_stops_with_one_line(tmp_path, dataset_
 def test_free_text_and_structured_answers_never_mix_in_the_cache(tmp_path, dataset_dir):
     def answer(body, rng):
         return schema_model(body, rng) if "response_format" in body else FREE
-    server = Loopback(openai_reply(answer))
+    server = serve(openai_reply(answer))
     cache = str(tmp_path / "cache.sqlite")
     try:
         free = config(tmp_path, server.root + "/v1", dataset_dir, "free.yaml", cache=cache,
@@ -363,13 +341,9 @@ def test_anthropic_wire_shape(tmp_path, dataset_dir, monkeypatch):
                      "usage": {"input_tokens": 100, "output_tokens": 10}}
 
     monkeypatch.setenv("ANTHROPIC_API_KEY", "test-key-not-real")
-    server = Loopback(reply)
-    try:
-        out = run_predict(config(tmp_path, server.root, dataset_dir, n=2,
-                                 backend={"name": "anthropic", "model": "claude-x"}))
-    finally:
-        server.close()
-    assert len(server.requests) == 18  # one request a sample
+    out, requests = run_served(reply, tmp_path, dataset_dir, n=2,
+                               backend={"name": "anthropic", "model": "claude-x"})
+    assert len(requests) == 18  # one request a sample
     preds = read_predictions(out, make_small_dataset(3, 3).catalog)
     assert all(p.diagnostics["failures"] == [] for p in preds)
 
@@ -404,13 +378,9 @@ def test_gemini_wire_shape(tmp_path, dataset_dir, monkeypatch):
                      "usageMetadata": {"promptTokenCount": 100, "candidatesTokenCount": 10}}
 
     monkeypatch.setenv("GEMINI_API_KEY", "test-key-not-real")
-    server = Loopback(reply)
-    try:
-        out = run_predict(config(tmp_path, server.root, dataset_dir, n=1,
-                                 backend={"name": "gemini", "model": "gemini-x"}))
-    finally:
-        server.close()
-    assert len(server.requests) == 9
+    out, requests = run_served(reply, tmp_path, dataset_dir, n=1,
+                               backend={"name": "gemini", "model": "gemini-x"})
+    assert len(requests) == 9
     items = seen[0]["properties"][STRUCTURED_KEY]["items"]
     ids = (items.get("anyOf") or items["any_of"])[0]["properties"]["id"]  # google-genai writes proto names
     assert ids["enum"][:2] == ["0", "1"] and str(ids["type"]).lower() == "integer"
@@ -424,11 +394,7 @@ def test_gemini_wire_shape(tmp_path, dataset_dir, monkeypatch):
 def test_failure_rate_is_zero_by_construction(tmp_path, method):
     """50 episodes x 5 samples against a server answering random schema instances (benchmarks/RESULTS.md)."""
     data = save_dataset(make_small_dataset(n_participants=10, n_trials=5, seed=3), tmp_path / "data")
-    server = Loopback(openai_reply(schema_model))
-    try:
-        out = run_predict(config(tmp_path, server.root + "/v1", data, method=method, n=5, concurrency=1))
-    finally:
-        server.close()
+    out, _ = run_served(openai_reply(schema_model), tmp_path, data, "/v1", method=method, n=5, concurrency=1)
     preds = read_predictions(out, make_small_dataset(10, 5, seed=3).catalog)
     samples = sum(len(p.diagnostics["responses"]) for p in preds)
     failed = sum(len(p.diagnostics["failures"]) for p in preds)
