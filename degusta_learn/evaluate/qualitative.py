@@ -17,7 +17,7 @@ from degusta_learn.render.lifting import Renderer
 from degusta_learn.render.text import font
 from degusta_learn.scene import Dataset, Placement
 
-_TITLE_H = 40
+_TITLE_H = 54  # title, score line, and a line for objects drawn off the table
 _PER_ROW = 4  # panels per row: wide enough to compare, small enough to read
 
 
@@ -29,8 +29,9 @@ def _panel(renderer: Renderer, table_id: int, placements: list[Placement], title
     canvas.paste(img, (0, _TITLE_H))
     draw = ImageDraw.Draw(canvas)
     draw.text((6, 2), title, fill="black", font=font(15))
-    note = subtitle + (f"  ({off} off the table)" if off else "")
-    draw.text((6, 21), note, fill=(80, 80, 80), font=font(12))
+    draw.text((6, 21), subtitle, fill=(80, 80, 80), font=font(12))
+    if off:  # its own line: appended to the score it ran past the panel's edge
+        draw.text((6, 37), f"{off} object{'s' if off > 1 else ''} off the table", fill=(170, 60, 40), font=font(12))
     return canvas
 
 
