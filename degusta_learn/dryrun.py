@@ -21,6 +21,18 @@ from degusta_learn.trainer import TrainerConfig, check_trainer, world_size
 GiB = 1024**3
 ADAMW_STATE_BYTES = 8
 """AdamW keeps two fp32 moments (exp_avg, exp_avg_sq) per trainable parameter."""
+RUNTIME_CPU_BYTES = int(1.0 * GiB)
+"""A CPU training process's own memory before the model: Python, torch, transformers, peft, Lightning, the
+processor and the dataset (measured RSS at the first training batch minus the fp32 weights, SmolVLM
+replicas: see benchmarks/RESULTS.md)."""
+CPU_ACTIVATION_FACTOR = 1.75
+"""On the CPU the peak RSS exceeds the live saved activations (which `transformer_activations` counts within
+2%, checked with saved-tensor hooks on the SmolVLM-256M replica) by the backward pass's transient gradients
+and glibc heap fragmentation (freed tensors below the mmap threshold keep their pages): x1.75, fitted on the
+SmolVLM-256M replica's measured peak and checked on SmolVLM-500M's (benchmarks/RESULTS.md). Not applied on a
+GPU, whose caching allocator reuses freed blocks (its overhead is not measured here)."""
+RUNTIME_GPU_BYTES = int(0.75 * GiB)
+"""CUDA context, cuBLAS/cuDNN workspaces and kernels on the device (typical 0.5-1 GiB; not measured here)."""
 
 
 @dataclass
@@ -32,15 +44,19 @@ class MemoryEstimate:
     optimizer: int
     activations: int
     note: str = ""
+    runtime: int = 0
+    """The process's own memory: CUDA context and kernels on a GPU, the Python/torch/transformers/Lightning
+    process (imports, processor, dataset) on the CPU."""
 
     @property
     def total(self) -> int:
-        return self.weights + self.gradients + self.optimizer + self.activations
+        return self.weights + self.gradients + self.optimizer + self.activations + self.runtime
 
     def describe(self) -> str:
         parts = (f"weights {_size(self.weights)} + gradients {_size(self.gradients)} + AdamW states "
-                 f"{_size(self.optimizer)} + activations {_size(self.activations)}")
-        return f"~{_size(self.total)} per device (ESTIMATE, not measured: {parts}{'; ' + self.note if self.note else ''})"
+                 f"{_size(self.optimizer)} + activations {_size(self.activations)}"
+                 + (f" + runtime {_size(self.runtime)}" if self.runtime else ""))
+        return f"~{_size(self.total)} per device (ESTIMATE of the memory model: {parts}{'; ' + self.note if self.note else ''})"
 
 
 def _size(n: float) -> str:
@@ -51,35 +67,53 @@ def _size(n: float) -> str:
 
 
 def estimate_memory(total_params: int, trainable_params: int, param_bytes: float, trainable_bytes: float = 4,
-                    activation_bytes: float = 0, processes: int = 1, note: str = "") -> MemoryEstimate:
-    """The simple memory model of `degusta train --dry-run` (an estimate; it is not checked against a GPU).
+                    activation_bytes: float = 0, processes: int = 1, note: str = "",
+                    runtime_bytes: float = 0) -> MemoryEstimate:
+    """The memory model of `degusta train --dry-run`: checked against the measured peak RSS of full-size CPU
+    replicas of the GPU fine-tuning configs (fp32; benchmarks/RESULTS.md "Full-size replicas"), not on a GPU.
 
     peak ~ frozen params x `param_bytes` + trainable params x `trainable_bytes` (the weights)
          + trainable params x `trainable_bytes` (their gradients; x2 under DDP: the all-reduce buckets)
          + trainable params x 8 (AdamW's two fp32 moments)
-         + `activation_bytes` (the caller's rough activation term for one batch).
-    Not included: the CUDA context and kernels (~0.3-1 GiB), allocator fragmentation, data-loader workers.
+         + `activation_bytes` (the caller's activation term for one batch, see `transformer_activations`)
+         + `runtime_bytes` (CUDA context and kernels, or the CPU process's own memory: see RUNTIME_*).
+    Not included: allocator fragmentation, data-loader worker processes (each its own process).
     """
     frozen = max(0, total_params - trainable_params)
     grads = trainable_params * trainable_bytes * (2 if processes > 1 else 1)
     return MemoryEstimate(weights=int(frozen * param_bytes + trainable_params * trainable_bytes), gradients=int(grads),
                           optimizer=int(trainable_params * ADAMW_STATE_BYTES), activations=int(activation_bytes),
-                          note=note)
+                          note=note, runtime=int(runtime_bytes))
+
+
+LORA_VALUES_PER_TOKEN_LAYER = (18.0, 4.33)
+"""Values a LLaMA/Qwen2 decoder layer keeps for backward per token when its 7 projections carry LoRA adapters
+with dropout and its base weights are frozen: about 18 x hidden + 4.33 x intermediate (+ 2 x kv width).
+Counted with torch's saved-tensor hooks (parameters excluded) on SmolLM2-135M / -360M / Qwen2-1.5B-sized
+layers at r=16, dropout 0.05: 17,403 / 28,929 / 66,686 values, which this fits within 1.5%. The two RMSNorms
+(input, normalised output), every adapter's dropped-out input and its bool mask, SDPA's q, k, v, output and
+log-sum-exp, and the SwiGLU's gate, up and product are what is kept; the frozen base Linears keep nothing."""
 
 
 def transformer_activations(tokens: int, hidden: int, intermediate: int, layers: int, value_bytes: float,
-                            checkpointing: bool = False) -> float:
-    """Rough bytes a decoder stack keeps for backward over `tokens` tokens (batch x sequence).
+                            checkpointing: bool = False, lora: bool = False, kv_width: int = 0) -> float:
+    """Bytes a decoder stack keeps for backward over `tokens` tokens (batch x sequence).
 
-    Per layer and token a (LLaMA-style, SwiGLU, fused attention: no T^2 scores) layer keeps about
-    6 x hidden + 4 x intermediate values (norm, QKV and output-projection inputs, attention output; gate, up,
-    activation and down-projection inputs). With gradient checkpointing only each layer's input (hidden
-    values) is kept, plus one layer's full set while it is recomputed.
+    Plain (full training, the learned model): about 6 x hidden + 4 x intermediate values per layer and token
+    (norm, QKV and output-projection inputs, attention output; gate, up, activation and down-projection inputs;
+    fused attention: no T^2 scores). `lora` (frozen base, LoRA with dropout on all 7 projections): the
+    measured LORA_VALUES_PER_TOKEN_LAYER instead. With gradient checkpointing only each layer's input
+    (hidden values) is kept, plus one layer's full set while it is recomputed; without it, one extra
+    layer's set is counted for the backward pass's transient gradients.
     """
-    per_layer = (6 * hidden + 4 * intermediate) * tokens * value_bytes
+    if lora:
+        a, b = LORA_VALUES_PER_TOKEN_LAYER
+        per_layer = (a * hidden + b * intermediate + 2 * kv_width) * tokens * value_bytes
+    else:
+        per_layer = (6 * hidden + 4 * intermediate) * tokens * value_bytes
     if checkpointing:
         return hidden * tokens * value_bytes * layers + per_layer
-    return per_layer * layers
+    return per_layer * (layers + (1 if lora else 0))
 
 
 def steps_per_epoch(n_examples: int, batch_size: int, cfg: TrainerConfig) -> tuple[int, int]:

@@ -230,7 +230,8 @@ def meta_model(source: str, key: str = "model.name"):
 def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: int, batch_size: int,
                counts: list[dict], on_gpu: bool):
     """The dry run's memory estimate of a VLM fine-tune (see `dryrun.estimate_memory` for the model)."""
-    from degusta_learn.dryrun import estimate_memory, transformer_activations
+    from degusta_learn.dryrun import (CPU_ACTIVATION_FACTOR, RUNTIME_CPU_BYTES, RUNTIME_GPU_BYTES, estimate_memory,
+                                      transformer_activations)
     from degusta_learn.trainer import world_size
 
     dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu else "float32")
@@ -245,8 +246,11 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
     hidden = getattr(text, "hidden_size", 0)
     inter = getattr(text, "intermediate_size", 4 * hidden)
     layers = getattr(text, "num_hidden_layers", 0)
+    heads = getattr(text, "num_attention_heads", 1) or 1
+    kv_width = (getattr(text, "num_key_value_heads", None) or heads) * (getattr(text, "head_dim", None) or hidden // heads)
     acts = transformer_activations(batch_size * T, hidden, inter, layers, act_bytes,
-                                   checkpointing=cfg_model.gradient_checkpointing)
+                                   checkpointing=cfg_model.gradient_checkpointing,
+                                   lora=lora_cfg.mode in ("lora", "qlora"), kv_width=kv_width)
     answer = max(c["answer"] for c in counts)
     vocab = getattr(text, "vocab_size", 0)
     acts += batch_size * answer * vocab * 4 * 2  # fp32 logits of the supervised positions + their softmax grad
@@ -264,7 +268,13 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
         note += "; frozen vision tower: no activations kept for it"
     note += (f"; activations for a batch of {batch_size} x {T} tokens"
              f"{', gradient checkpointing' if cfg_model.gradient_checkpointing else ''}")
-    return estimate_memory(total, trainable, param_bytes, trainable_bytes, acts, world_size(trainer_cfg), note)
+    if not on_gpu:
+        acts *= CPU_ACTIVATION_FACTOR
+        note += f"; activations x{CPU_ACTIVATION_FACTOR} on the CPU (backward transients, heap fragmentation)"
+    runtime = RUNTIME_GPU_BYTES if on_gpu else RUNTIME_CPU_BYTES
+    note += "; runtime: CUDA context and kernels" if on_gpu else "; runtime: the CPU process itself"
+    return estimate_memory(total, trainable, param_bytes, trainable_bytes, acts, world_size(trainer_cfg), note,
+                           runtime_bytes=runtime)
 
 
 def dry_run(cfg: FinetuneConfig, log=print) -> None:
