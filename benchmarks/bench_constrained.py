@@ -1,4 +1,4 @@
-"""Constrained decoding: our automaton + trie (`finetune/constrain.py`) vs xgrammar on the same grammar.
+"""Constrained decoding: our automaton + trie (`vlm/constrain.py`) vs xgrammar on the same grammar.
 
 Vocabulary: the real SmolVLM-256M-Instruct tokenizer (byte-level BPE, 49,152 tokens + 128 added = 49,280
 logits), read from /work/shared/reference-models (offline). Catalog: `scene.default_catalog()` (125 objects,
@@ -89,7 +89,7 @@ class Ours:
     mask_times = None  # one call computes the mask and applies it
 
     def __init__(self, grammar, tok, stop_ids, max_new_tokens):
-        from degusta_learn.finetune.constrain import GrammarLogitsProcessor
+        from degusta_learn.vlm.constrain import GrammarLogitsProcessor
 
         self.make = lambda: GrammarLogitsProcessor(grammar, tok, 1, stop_ids, max_new_tokens)
         t = time.perf_counter()
@@ -203,7 +203,7 @@ def main():
     import xgrammar as xgr
     from transformers import AutoTokenizer
 
-    from degusta_learn.finetune.grammar import AnswerGrammar
+    from degusta_learn.vlm.grammar import AnswerGrammar
     from degusta_learn.prompting.answers import answer_schema
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import default_catalog

@@ -31,11 +31,12 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 def batches_for(kind: str, n: int, batch_size: int, ds, cache: Path):
     """(model, processor, batches, data seconds per batch) for tiny `kind`."""
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.data import LiftedExamples, PromptOptions
-    from degusta_learn.finetune.generate import chat_format
-    from degusta_learn.finetune.inputs import set_image_budget
-    from degusta_learn.finetune.model import load_vlm
-    from degusta_learn.finetune.tiny import ensure_tiny
+    from degusta_learn.finetune.data import LiftedExamples
+    from degusta_learn.vlm.prompt_options import PromptOptions
+    from degusta_learn.vlm.generate import chat_format
+    from degusta_learn.vlm.inputs import set_image_budget
+    from degusta_learn.vlm.load import load_vlm
+    from degusta_learn.vlm.tiny import ensure_tiny
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import make_episodes
 
@@ -116,7 +117,7 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     from degusta_learn.finetune.lora import LoraConfig, apply_lora
-    from degusta_learn.finetune.model import offline
+    from degusta_learn.vlm.load import offline
     from degusta_learn.scene import load_dataset
 
     offline()

@@ -67,10 +67,10 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     from degusta_learn.fileio import atomic_write_json, read_json
-    from degusta_learn.finetune.generate import generate_answers
-    from degusta_learn.finetune.grammar import AnswerGrammar
-    from degusta_learn.finetune.inputs import set_image_budget
-    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.vlm.generate import generate_answers
+    from degusta_learn.vlm.grammar import AnswerGrammar
+    from degusta_learn.vlm.inputs import set_image_budget
+    from degusta_learn.vlm.load import load_vlm
     from degusta_learn.finetune.pretrain.export import BASE_META, PERCEPTION, write_card
     from degusta_learn.finetune.pretrain.score import score_answer, summarize
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix

@@ -42,7 +42,7 @@ def tower(kind: str):
         return 256, encode, params, model.config.text_config.hidden_size
     from transformers import PreTrainedTokenizerFast
 
-    from degusta_learn.finetune.tiny import IDEFICS3_ROLES, IDEFICS3_SPECIAL, _wrap, idefics3, train_tokenizer
+    from degusta_learn.vlm.tiny import IDEFICS3_ROLES, IDEFICS3_SPECIAL, _wrap, idefics3, train_tokenizer
 
     tok = _wrap(train_tokenizer(IDEFICS3_SPECIAL), PreTrainedTokenizerFast, IDEFICS3_SPECIAL, **IDEFICS3_ROLES)
     model, _ = idefics3(tok, 160, 10, 2, vision=dict(hidden_size=128, intermediate_size=512, num_hidden_layers=4,

@@ -19,7 +19,8 @@ torch.set_num_threads(1)
 
 from conftest import make_small_dataset  # noqa: E402
 
-from degusta_learn.finetune.data import LiftedExamples, PromptOptions  # noqa: E402
+from degusta_learn.finetune.data import LiftedExamples  # noqa: E402
+from degusta_learn.vlm.prompt_options import PromptOptions  # noqa: E402
 from degusta_learn.render.grid import Grid  # noqa: E402
 from degusta_learn.scene import make_episodes  # noqa: E402
 
@@ -34,15 +35,15 @@ def cache_dir() -> Path:
 @functools.cache
 def tiny_dir(kind: str) -> Path:
     """Folder of the tiny `kind` model (idefics3 / qwen2vl), built on first use."""
-    from degusta_learn.finetune.tiny import ensure_tiny
+    from degusta_learn.vlm.tiny import ensure_tiny
 
     return ensure_tiny(cache_dir() / kind, kind)
 
 
 def load(kind: str, adapter=None):
     """A fresh (model, processor) of the tiny model with its image budget set."""
-    from degusta_learn.finetune.inputs import set_image_budget
-    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.vlm.inputs import set_image_budget
+    from degusta_learn.vlm.load import load_vlm
 
     model, processor = load_vlm(str(tiny_dir(kind)), adapter=adapter, device="cpu", dtype="float32")
     set_image_budget(processor, model.config, None)

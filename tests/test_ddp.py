@@ -178,7 +178,7 @@ def test_finetune_ddp_stopped_resumed_and_equal_to_one_process(world):
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.finetune.generate import chat_format
+    from degusta_learn.vlm.generate import chat_format
     from degusta_learn.finetune.module import FinetuneData, FinetuneModule
     from degusta_learn.finetune.train import build_examples, prepare_model
     from degusta_learn.prompting import answer_kind

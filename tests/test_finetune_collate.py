@@ -10,8 +10,8 @@ from finetune_support import GRID, dataset, examples, load
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.collate import IGNORE, Collator, supervised_text
-from degusta_learn.finetune.data import PromptOptions
-from degusta_learn.finetune.inputs import ChatFormat
+from degusta_learn.vlm.prompt_options import PromptOptions
+from degusta_learn.vlm.inputs import ChatFormat
 from degusta_learn.finetune.loss import lm_loss
 from degusta_learn.prompting import parse_answer
 
@@ -64,7 +64,7 @@ def test_no_double_bos(setup):
 
 def test_image_tokens_per_example_match_the_images(setup):
     kind, model, processor, fmt = setup
-    from degusta_learn.finetune.inputs import tokens_per_image
+    from degusta_learn.vlm.inputs import tokens_per_image
 
     per_image = tokens_per_image(processor, fmt, model.config.image_token_id)
     for ctx, opts, n_images in [(2, PromptOptions(compose=["objects"]), 1 + 2 + 1),

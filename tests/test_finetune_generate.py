@@ -10,7 +10,7 @@ import torch
 from finetune_support import GRID, dataset, examples, load
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.grammar import AnswerGrammar
+from degusta_learn.vlm.grammar import AnswerGrammar
 from degusta_learn.prompting import AnswerItem, AnswerParseError, format_answer, parse_answer
 
 
@@ -56,7 +56,7 @@ def test_every_text_the_grammar_allows_parses(kind):
 
 @pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
 def test_constrained_decoding_always_parses_with_random_weights(kind):
-    from degusta_learn.finetune.generate import generate_answers
+    from degusta_learn.vlm.generate import generate_answers
 
     model, processor = load(kind)
     cat = dataset().catalog
@@ -79,8 +79,8 @@ def test_constrained_decoding_always_parses_with_random_weights(kind):
 def test_overfit_a_few_examples_until_the_answer_equals_the_target():
     """Full fine-tuning of the tiny Idefics3 on 2 examples; greedy generation then reproduces them."""
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.data import PromptOptions
-    from degusta_learn.finetune.generate import chat_format, generate_answers
+    from degusta_learn.vlm.prompt_options import PromptOptions
+    from degusta_learn.vlm.generate import chat_format, generate_answers
     from degusta_learn.finetune.loss import lm_loss
 
     torch.manual_seed(0)

@@ -11,8 +11,8 @@ from PIL import Image
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.render.grid import Grid
-from degusta_learn.finetune.inputs import check_grid_resolution, ChatFormat, set_image_budget, tokens_per_image
-from degusta_learn.finetune.model import load_vlm
+from degusta_learn.vlm.inputs import check_grid_resolution, ChatFormat, set_image_budget, tokens_per_image
+from degusta_learn.vlm.load import load_vlm
 
 
 @pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])

@@ -69,7 +69,7 @@ def test_dense_head_trains_the_tokens_the_decoder_sees():
 def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
     from transformers import AutoModelForImageTextToText, AutoProcessor
 
-    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.vlm.load import load_vlm
 
     out = run_train(CONFIG, _overrides(tmp_path, 2))
     assert out == tmp_path / "base"

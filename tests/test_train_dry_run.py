@@ -47,8 +47,8 @@ def test_finetune_dry_run_counts_like_the_collator(tmp_path, data):
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.finetune.inputs import ChatFormat
-    from degusta_learn.finetune.model import load_processor
+    from degusta_learn.vlm.inputs import ChatFormat
+    from degusta_learn.vlm.load import load_processor
     from degusta_learn.finetune.train import build_examples, count_tokens, meta_model, set_budget
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.inputs import ChatFormat, prompt_messages
+from degusta_learn.vlm.inputs import ChatFormat, prompt_messages
 
 IGNORE = -100
 

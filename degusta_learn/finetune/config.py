@@ -6,9 +6,9 @@ from dataclasses import dataclass, field
 
 from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.data import COMPOSE, GROUPS
 from degusta_learn.finetune.lora import LoraConfig
 from degusta_learn.trainer import TrainerConfig
+from degusta_learn.vlm.prompt_options import COMPOSE, GROUPS
 
 
 @dataclass

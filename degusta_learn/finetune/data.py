@@ -7,11 +7,8 @@ the zero-shot answer format (`format_answer(answer_items(...))`: cells from `Gri
 from `rotation_to_direction`, mark ids, in placement order). Nothing is pre-rendered: images are drawn
 in `__getitem__` (in DataLoader workers), so grid size, image size or method change without a cache.
 
-Options that matter for small models (`PromptOptions`, saved beside the adapter and re-applied by the hf
-backend, so a fine-tuned model is always prompted the way it was trained):
-- `include`: which image groups to send ("objects" = GoMO sheets, "context" = final_state_k, "target");
-- `compose`: each listed group ("objects", "context") drawn as one labelled canvas, or "all" images in
-  one canvas, to save image tokens.
+Each prompt is cut down by the config's `PromptOptions` (`vlm/prompt_options.py`: image groups sent,
+composed canvases), the same options the hf backend re-applies at prediction time.
 
 Example:
     examples = LiftedExamples(ds, episodes, "mogma", Grid(8, 8), render_size=448)
@@ -20,34 +17,9 @@ Example:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
-from PIL import Image, ImageDraw
-
-from degusta_learn.errors import DegustaError
-
-GROUPS = ("objects", "context", "target")
-COMPOSE = ("objects", "context", "all")
-
-
-@dataclass
-class PromptOptions:
-    """How a prompt is cut down for a small model (see the module docstring)."""
-
-    include: list[str] = field(default_factory=lambda: list(GROUPS))
-    compose: list[str] = field(default_factory=list)
-
-    def __post_init__(self):
-        for g in self.include:
-            if g not in GROUPS:
-                raise DegustaError(f"data.include: unknown image group {g!r} (expected some of {list(GROUPS)})")
-        for g in self.compose:
-            if g not in COMPOSE:
-                raise DegustaError(f"data.compose: unknown group {g!r} (expected some of {list(COMPOSE)})")
-
-    def to_json(self) -> dict:
-        return {"include": list(self.include), "compose": list(self.compose)}
+from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
 
 @dataclass
@@ -61,91 +33,6 @@ class Example:
     target: int = -1
     meta: dict = field(default_factory=dict)
     """What scoring needs beyond the answer text (perception examples: task and ground truth)."""
-
-
-def image_group(name: str) -> str:
-    """"objects" / "context" / "target" from an image name (objects_cup.jpg, final_state_2.jpg, ...)."""
-    if name.startswith("objects"):
-        return "objects"
-    if name.startswith("final_state"):
-        return "context"
-    return "target"
-
-
-def adapt_prompt(prompt, options: PromptOptions):
-    """A copy of `prompt` with excluded image groups removed and composed groups drawn as one canvas."""
-    from degusta_learn.prompting import ImagePart, Prompt
-
-    parts = list(prompt.parts)
-    keep: list = []
-    for i, part in enumerate(parts):
-        nxt = parts[i + 1] if i + 1 < len(parts) else None
-        after = parts[i + 2] if i + 2 < len(parts) else None
-        if "objects" not in options.include and isinstance(part, str) and isinstance(nxt, str) \
-                and isinstance(after, ImagePart) and image_group(after.name) == "objects" and i == 0:
-            continue  # the "These are the objects I have" line of dropped object sheets
-        if isinstance(part, str) and isinstance(nxt, ImagePart) and part == f"{nxt.name}:" \
-                and image_group(nxt.name) not in options.include:
-            continue  # the label of a dropped image
-        if isinstance(part, ImagePart) and image_group(part.name) not in options.include:
-            continue
-        keep.append(part)
-    if "all" in options.compose:
-        keep = _compose(keep, set(GROUPS), "all")
-    else:
-        for g in GROUPS:
-            if g in options.compose:
-                keep = _compose(keep, {g}, g)
-    return Prompt(method=prompt.method, parts=keep, episode=prompt.episode)
-
-
-def _compose(parts: list, groups: set[str], label: str) -> list:
-    """Replace the images of `groups` (and their "name:" labels) by one titled canvas at the first one."""
-    from degusta_learn.prompting import ImagePart
-
-    out: list = []
-    members: list = []
-    slot = None
-    for i, part in enumerate(parts):
-        nxt = parts[i + 1] if i + 1 < len(parts) else None
-        if isinstance(part, str) and isinstance(nxt, ImagePart) and part == f"{nxt.name}:" \
-                and image_group(nxt.name) in groups:
-            continue
-        if isinstance(part, ImagePart) and image_group(part.name) in groups:
-            if slot is None:
-                slot = len(out)
-                out.append(None)
-            members.append(part)
-            continue
-        out.append(part)
-    if len(members) < 2:  # nothing to compose: keep the original layout
-        return parts
-    name = f"{label}.{members[0].name.rsplit('.', 1)[-1]}"
-    names = ", ".join(m.name for m in members)
-    canvas = compose_canvas([(m.name, m.image) for m in members], size=members[0].image.size[0])
-    out[slot:slot + 1] = [f"{name} shows the images {names} side by side, each titled with its name:",
-                          ImagePart(name=name, image=canvas, format=members[0].format)]
-    return out
-
-
-def compose_canvas(images: list[tuple[str, Image.Image]], size: int) -> Image.Image:
-    """Tile named images into one square canvas of `size` px, each tile titled with its name."""
-    n = len(images)
-    cols = math.ceil(math.sqrt(n))
-    rows = math.ceil(n / cols)
-    tile = size // cols
-    title = max(10, tile // 10)
-    canvas = Image.new("RGB", (size, size), "white")
-    draw = ImageDraw.Draw(canvas)
-    y0 = (size - rows * tile) // 2
-    for k, (name, im) in enumerate(images):
-        r, c = divmod(k, cols)
-        x, y = c * tile, y0 + r * tile
-        body = im.convert("RGB").resize((tile - 2, tile - title - 2), Image.Resampling.LANCZOS)
-        canvas.paste(body, (x + 1, y + title + 1))
-        draw.rectangle([x, y, x + tile - 1, y + tile - 1], outline=(60, 60, 60))
-        draw.text((x + 3, y + 1), name.rsplit(".", 1)[0], fill=(0, 0, 0))
-    return canvas
 
 
 class LiftedExamples:

@@ -99,8 +99,8 @@ class FinetuneModule(L.LightningModule):
 
     def score(self, ex, constrained: bool) -> dict:
         """Generate one greedy answer for `ex` and score it against the ground truth."""
-        from degusta_learn.finetune.generate import generate_answers
-        from degusta_learn.finetune.grammar import AnswerGrammar
+        from degusta_learn.vlm.generate import generate_answers
+        from degusta_learn.vlm.grammar import AnswerGrammar
         from degusta_learn.metrics import score_prediction
         from degusta_learn.prompting import AnswerParseError, parse_answer
         from degusta_learn.prompting.aggregate import aggregate

@@ -26,7 +26,8 @@ META_FILE = "degusta_finetune.json"
 
 def build_examples(cfg: FinetuneConfig, ds, grid):
     """(train LiftedExamples, val LiftedExamples) from the dataset's seeded participant split."""
-    from degusta_learn.finetune.data import LiftedExamples, PromptOptions
+    from degusta_learn.finetune.data import LiftedExamples
+    from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.scene import make_episodes
 
     opts = PromptOptions(include=list(cfg.data.include), compose=list(cfg.data.compose))
@@ -43,7 +44,7 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
 def prepare_model(cfg: FinetuneConfig):
     """(trainable model, processor) per cfg.model / cfg.lora, image budget set, context checked."""
     from degusta_learn.finetune import lora
-    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.vlm.load import load_vlm
 
     if cfg.model.build_tiny:
         ensure_tiny_model(cfg)
@@ -61,7 +62,7 @@ def prepare_model(cfg: FinetuneConfig):
 def set_budget(cfg: FinetuneConfig, processor, model_config) -> None:
     """Set the processor's image budget, then check it against the grid and `data.max_length` against the
     model's context (one-line errors naming the key)."""
-    from degusta_learn.finetune.inputs import check_grid_resolution, set_image_budget
+    from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
     from degusta_learn.prompting import answer_kind
 
     set_image_budget(processor, model_config, cfg.model.image_size)
@@ -98,7 +99,7 @@ def run(cfg: FinetuneConfig) -> Path:
     """Train per `cfg` (resuming `<run>/last.ckpt` if present); returns the run folder."""
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.generate import chat_format
+    from degusta_learn.vlm.generate import chat_format
     from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing, monitor_keys
     from degusta_learn.prompting import answer_kind
     from degusta_learn.render.grid import Grid
@@ -144,7 +145,7 @@ def ensure_tiny_model(cfg: FinetuneConfig, wait_s: float = 600.0) -> None:
     (torchrun, srun) only rank 0 builds it and the others wait for its marker file."""
     import time
 
-    from degusta_learn.finetune.tiny import TINY_VERSION, ensure_tiny
+    from degusta_learn.vlm.tiny import TINY_VERSION, ensure_tiny
     from degusta_learn.trainer import global_rank
 
     marker = Path(cfg.model.name) / "degusta_tiny.json"
@@ -289,8 +290,8 @@ def dry_run(cfg: FinetuneConfig, log=print) -> None:
 
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.inputs import ChatFormat
-    from degusta_learn.finetune.model import load_processor
+    from degusta_learn.vlm.inputs import ChatFormat
+    from degusta_learn.vlm.load import load_processor
     from degusta_learn.finetune.module import monitor_keys
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
@@ -303,7 +304,7 @@ def dry_run(cfg: FinetuneConfig, log=print) -> None:
         source = cfg.model.name
         marker = Path(source) / "degusta_tiny.json"
         if cfg.model.build_tiny and not marker.is_file():
-            from degusta_learn.finetune.tiny import ensure_tiny
+            from degusta_learn.vlm.tiny import ensure_tiny
 
             tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="degusta-dry-run-"))
             source = str(ensure_tiny(Path(tmp) / "tiny", cfg.model.build_tiny))

@@ -54,7 +54,7 @@ def domain_tokenizer(special_tokens: list[str], vocab_size: int = 2048):
     """Train the domain tokenizer (see the module docstring); special tokens get the first ids."""
     from tokenizers import AddedToken, Regex, Tokenizer, decoders, models, pre_tokenizers, trainers
 
-    from degusta_learn.finetune.tiny import task_corpus
+    from degusta_learn.vlm.tiny import task_corpus
 
     tok = Tokenizer(models.BPE())
     tok.pre_tokenizer = pre_tokenizers.Sequence([

@@ -11,6 +11,7 @@ file-like names the task text refers to, following the paper's appendix:
 
 Backends send the parts in order (text as text, images as images) and the model never sees file names,
 so every image is preceded by a text part naming it ("final_state_1.jpg:").
+A `Completion` is one sampled answer to a prompt (what every backend and `vlm.generate` return).
 
 Example:
     from degusta_learn.render.grid import Grid
@@ -90,6 +91,15 @@ class Prompt:
     @property
     def images(self) -> list[ImagePart]:
         return [p for p in self.parts if isinstance(p, ImagePart)]
+
+
+@dataclass
+class Completion:
+    """One sampled answer; token counts are this sample's share of the request (None if unknown)."""
+
+    text: str
+    input_tokens: int | None = None
+    output_tokens: int | None = None
 
 
 def _check_method(method: str) -> None:

@@ -93,7 +93,7 @@ def build_base(arch: BaseArchitecture, seed: int = 0):
     from transformers import (CLIPImageProcessor, FastVlmConfig, FastVlmForConditionalGeneration, LlavaProcessor,
                               PreTrainedTokenizerFast, TimmWrapperConfig)
 
-    from degusta_learn.finetune.tiny import _set_generation_ids, _wrap
+    from degusta_learn.vlm.tiny import _set_generation_ids, _wrap
     from degusta_learn.finetune.vocab import domain_tokenizer
 
     tokenizer = _wrap(domain_tokenizer(SPECIAL, arch.vocab_size), PreTrainedTokenizerFast, SPECIAL, **ROLES)

@@ -119,7 +119,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         "from transformers import AutoModelForImageTextToText, AutoProcessor",
         f"model = AutoModelForImageTextToText.from_pretrained(\"{path.as_posix()}\")",
         f"processor = AutoProcessor.from_pretrained(\"{path.as_posix()}\")",
-        "# or: from degusta_learn.finetune.model import load_vlm; model, processor = load_vlm(path)", "```", "",
+        "# or: from degusta_learn.vlm.load import load_vlm; model, processor = load_vlm(path)", "```", "",
         "## Architecture and image budget", "",
         f"- vision: timm `resnet18` layout with stage widths {a['vision_channels']}, blocks {a['vision_layers']}, "
         f"stem {a['vision_stem']}; {a['image_size']} px images, output stride 32: an "

@@ -62,7 +62,7 @@ class PerceptionModule(FinetuneModule):
         return loss + self.dense_weight * dense
 
     def grammar(self):
-        from degusta_learn.finetune.grammar import AnswerGrammar
+        from degusta_learn.vlm.grammar import AnswerGrammar
 
         if self._grammar is None:
             self._grammar = AnswerGrammar("grid", self.catalog, self.grid)
@@ -70,7 +70,7 @@ class PerceptionModule(FinetuneModule):
 
     def answer(self, ex) -> str:
         """The greedy answer to one perception example (constrained unless it asks for a mark id)."""
-        from degusta_learn.finetune.generate import generate_answers
+        from degusta_learn.vlm.generate import generate_answers
 
         located = ex.meta["task"] != "gomo"
         return generate_answers(self.model, self.processor, ex.prompt, n=1, temperature=0.0,

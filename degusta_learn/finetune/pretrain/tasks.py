@@ -33,8 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.data import Example, PromptOptions, adapt_prompt
+from degusta_learn.finetune.data import Example
 from degusta_learn.finetune.pretrain.scenes import random_scene
+from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
 TASKS = ("list", "describe", "gomo")
 GRID_FORMAT = ("[{'type': object_type, 'id': object_reference_id, 'position': [grid_cell_ids], "

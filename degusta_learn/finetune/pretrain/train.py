@@ -141,7 +141,7 @@ class EpochSampler:
 def initial_model(cfg: PretrainConfig, run_dir: Path) -> Path:
     """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it)."""
     from degusta_learn.fileio import atomic_write_json
-    from degusta_learn.finetune.model import offline
+    from degusta_learn.vlm.load import offline
     from degusta_learn.finetune.pretrain.base import build_base
 
     init = run_dir / "init"
@@ -161,8 +161,8 @@ def run(cfg: PretrainConfig) -> Path:
     import torch
 
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.generate import chat_format
-    from degusta_learn.finetune.model import load_vlm
+    from degusta_learn.vlm.generate import chat_format
+    from degusta_learn.vlm.load import load_vlm
     from degusta_learn.finetune.module import FinetuneData
     from degusta_learn.finetune.pretrain.export import export_base
     from degusta_learn.finetune.pretrain.dense import DenseLabels
@@ -211,7 +211,7 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     import torch
 
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.inputs import ChatFormat
+    from degusta_learn.vlm.inputs import ChatFormat
     from degusta_learn.finetune.pretrain.base import build_base
     from degusta_learn.finetune.pretrain.module import monitor_keys
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
@@ -225,7 +225,7 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
     init = cfg.trainer.path / "init"
     if (init / "degusta_init.json").is_file():
-        from degusta_learn.finetune.model import load_processor
+        from degusta_learn.vlm.load import load_processor
 
         model, config = meta_model(str(init), key="model")
         processor, where = load_processor(str(init), "model"), f"{init}'s config"

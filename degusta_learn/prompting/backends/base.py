@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.prompt import Prompt
+from degusta_learn.prompting.prompt import Completion, Prompt
 
 BACKENDS: dict[str, str] = {
     "openai": "degusta_learn.prompting.backends.openai:OpenAIBackend",
@@ -37,15 +37,6 @@ BACKENDS: dict[str, str] = {
 STRUCTURED_BACKENDS = ("openai", "anthropic", "gemini", "replay")
 """Backends that take `structured_output: true` (replay ignores it: recorded answers of both kinds parse)."""
 DEFAULT_KEY_ENV = {"openai": "OPENAI_API_KEY", "anthropic": "ANTHROPIC_API_KEY", "gemini": "GEMINI_API_KEY"}
-
-
-@dataclass
-class Completion:
-    """One sampled answer; token counts are this sample's share of the request (None if unknown)."""
-
-    text: str
-    input_tokens: int | None = None
-    output_tokens: int | None = None
 
 
 @runtime_checkable

@@ -1,8 +1,8 @@
 """The `hf` backend: a local Hugging Face VLM (zero-shot base model, or base + fine-tuned adapter).
 
-Loads the model offline (`finetune.model.load_vlm`: hub id from the local cache or a folder, never a
+Loads the model offline (`vlm.load.load_vlm`: hub id from the local cache or a folder, never a
 download), optionally with a peft adapter (`backend.adapter`), and answers with
-`finetune.generate.generate_answers`, optionally constrained to the answer grammar
+`vlm.generate.generate_answers`, optionally constrained to the answer grammar
 (`backend.constrained: true`: every answer parses). A fine-tuned adapter or model folder carries
 `degusta_finetune.json` (written by `degusta train`): the backend re-applies its prompt options (image
 groups, composed canvases) and image budget, and refuses a different method or grid than the one
@@ -45,9 +45,9 @@ class HFBackend:
 
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None):
-        from degusta_learn.finetune.data import PromptOptions
-        from degusta_learn.finetune.inputs import check_grid_resolution, set_image_budget
-        from degusta_learn.finetune.model import load_vlm
+        from degusta_learn.vlm.prompt_options import PromptOptions
+        from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
+        from degusta_learn.vlm.load import load_vlm
 
         self.model = model
         self.meta = read_meta(adapter, model)
@@ -75,7 +75,7 @@ class HFBackend:
                    dtype=cfg.dtype, image_size=cfg.image_size, grid=grid, catalog=catalog)
 
     def grammar(self, method: str):
-        from degusta_learn.finetune.grammar import AnswerGrammar
+        from degusta_learn.vlm.grammar import AnswerGrammar
         from degusta_learn.prompting.answers import answer_kind
 
         kind = answer_kind(method)
@@ -84,8 +84,8 @@ class HFBackend:
         return self._grammars[kind]
 
     def complete(self, prompt, n: int, temperature: float, max_tokens: int, seed: int | None = None) -> list:
-        from degusta_learn.finetune.data import adapt_prompt
-        from degusta_learn.finetune.generate import generate_answers
+        from degusta_learn.vlm.prompt_options import adapt_prompt
+        from degusta_learn.vlm.generate import generate_answers
 
         if self.meta and self.meta.get("method") and prompt.method != self.meta["method"]:
             raise DegustaError(f"method: this model was fine-tuned on {self.meta['method']} prompts, the predict "

@@ -9,7 +9,7 @@ shaped like the real one. Everything is written with `save_pretrained`, so `load
 through the same Auto classes as a hub id.
 
 Usage:
-    from degusta_learn.finetune.tiny import build_tiny_idefics3
+    from degusta_learn.vlm.tiny import build_tiny_idefics3
     path = build_tiny_idefics3("checkpoints/tiny/idefics3")   # ~1 MB, a few seconds
     model, processor = load_vlm(path)
 
@@ -258,7 +258,7 @@ def _set_generation_ids(model, tokenizer, eos_id: int, pad_id: int) -> None:
 
 
 def _save(out_dir, model, processor, kind: str) -> Path:
-    from degusta_learn.finetune.model import offline
+    from degusta_learn.vlm.load import offline
 
     offline()  # quiet progress bars; no hub calls
     out = Path(out_dir)

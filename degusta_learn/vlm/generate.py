@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.inputs import ChatFormat, encode_prompt
+from degusta_learn.vlm.inputs import ChatFormat, encode_prompt
 
 
 def chat_format(model, processor) -> ChatFormat:
@@ -49,8 +49,8 @@ def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 
     """
     from transformers import LogitsProcessorList
 
-    from degusta_learn.finetune.constrain import GrammarLogitsProcessor
-    from degusta_learn.prompting.backends.base import Completion
+    from degusta_learn.vlm.constrain import GrammarLogitsProcessor
+    from degusta_learn.prompting.prompt import Completion
 
     if constrained and grammar is None:
         raise DegustaError("backend.constrained: constrained decoding needs the answer grammar (catalog and grid)")

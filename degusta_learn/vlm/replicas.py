@@ -35,7 +35,7 @@ tokenizer's (measured for SmolVLM-256M in benchmarks/RESULTS.md, "Full-size repl
 counts are therefore approximate in their text part.
 
 Usage:
-    from degusta_learn.finetune.replicas import build_replica
+    from degusta_learn.vlm.replicas import build_replica
     build_replica("smolvlm_256m", "/tmp/repl/smolvlm_256m",
                   reference_dir="../shared/reference-models/SmolVLM-256M-Instruct")
     # then: degusta train --config configs/finetune_smolvlm_256m.yaml --set model.name=/tmp/repl/smolvlm_256m ...
@@ -186,7 +186,7 @@ def build_replica(name: str, out_dir: str | Path, reference_dir: str | Path | No
     import torch
     from transformers import AutoModelForImageTextToText
 
-    from degusta_learn.finetune.model import offline
+    from degusta_learn.vlm.load import offline
 
     offline()
     spec = replica_spec(name, key)
@@ -214,13 +214,13 @@ def build_replica(name: str, out_dir: str | Path, reference_dir: str | Path | No
     atomic_write_json(out / "degusta_replica.json", {
         "replica": name, "hub_id": spec["hub_id"], "version": REPLICA_VERSION, "parameters": n, "weights": weights,
         "tokenizer": "real" if real else "tiny offline BPE (text token counts differ from the real model's)",
-        "note": "random weights, published architecture, built offline by degusta_learn.finetune.replicas"})
+        "note": "random weights, published architecture, built offline by degusta_learn.vlm.replicas"})
     return out
 
 
 def _processor(spec: dict, reference_dir, key: str):
     """(processor with the published settings, True when it carries the real tokenizer)."""
-    from degusta_learn.finetune import tiny
+    from degusta_learn.vlm import tiny
 
     ps = spec["processor"]
     if reference_dir is not None:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.grammar import AnswerGrammar
+from degusta_learn.vlm.grammar import AnswerGrammar
 
 _VOCAB_CACHE: dict[int, tuple] = {}
 

@@ -1,0 +1,11 @@
+"""Local vision-language models, shared by zero-shot prompting (the `hf` backend) and fine-tuning.
+
+load.py loads any VLM (hub id from the local cache, or a folder) offline with an optional peft adapter;
+inputs.py is the chat format, prompt encoding and image budget (and the grid-resolution check);
+prompt_options.py cuts a prompt down for a small model (image groups, composed canvases);
+grammar.py + constrain.py + generate.py generate answers, optionally constrained to the answer grammar;
+tiny.py builds random-weight tiny Idefics3 / Qwen2-VL models offline; replicas.py builds full-size
+random-weight replicas of the GPU configs' models. It stands below `prompting` and `finetune`: it imports
+only prompting's prompt and answer types, never its runner or backends, and nothing from finetune.
+Nothing here imports torch at package import time.
+"""
