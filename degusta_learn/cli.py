@@ -17,6 +17,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from degusta_learn.config import MAX_SEED
 from degusta_learn.errors import DegustaError
 
 
@@ -121,7 +122,7 @@ def _int_in(lo: int, hi: int) -> Callable[[str], int]:
     return parse
 
 
-SEED = _int_in(0, 2**32 - 1)
+SEED = _int_in(0, MAX_SEED)
 IMAGE_SIZE = _int_in(16, 4096)
 
 

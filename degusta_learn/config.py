@@ -26,6 +26,7 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin
 import yaml
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import open_regular
 
 T = TypeVar("T")
 
@@ -137,20 +138,12 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping; a missing/unreadable/oversized file, a syntax error, an alias bomb or a
     non-mapping raises DegustaError with a one-line message naming the file."""
     path = Path(path)
+    with open_regular(path, MAX_CONFIG_BYTES, "a YAML config file") as f:
+        data = f.read()
     try:
-        if path.is_dir():
-            raise DegustaError(f"{path}: is a folder, expected a YAML config file")
-        size = path.stat().st_size
-        if size > MAX_CONFIG_BYTES:
-            raise DegustaError(f"{path}: {size:,} bytes is too large for a config file "
-                               f"(at most {MAX_CONFIG_BYTES:,})")
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DegustaError(f"{path}: config file not found") from None
+        text = data.decode("utf-8")
     except UnicodeDecodeError as e:
         raise DegustaError(f"{path}: not UTF-8 text (byte {e.start}); expected a YAML config file") from None
-    except OSError as e:
-        raise DegustaError(f"{path}: cannot read the config file ({e.strerror or e})") from None
     try:
         data = _safe_load(text)
     except yaml.YAMLError as e:

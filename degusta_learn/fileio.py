@@ -33,7 +33,7 @@ def _current_umask() -> int:
     return mask
 
 
-_UMASK = _current_umask()
+UMASK = _current_umask()  # the process's umask, read once (os.umask can only be read by setting it)
 
 
 def target_problem(path: str | os.PathLike) -> str | None:
@@ -78,7 +78,7 @@ def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[Any]:
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get the usual permissions
+        os.chmod(tmp, 0o666 & ~UMASK)  # mkstemp makes 0600 files; outputs get the usual permissions
         os.replace(tmp, path)
     except BaseException as e:
         with contextlib.suppress(OSError):
@@ -348,8 +348,9 @@ def _loads(text: str) -> Any:
     return obj
 
 
-def _open_regular(path: Path, limit: int):
-    """Open `path` for binary reading after checking that it is a regular file of at most `limit` bytes."""
+def open_regular(path: Path, limit: int, what: str = "a file"):
+    """Open `path` for binary reading after checking that it is a regular file (`what`, for messages) of at
+    most `limit` bytes; anything else (missing, a folder, a symlink loop, a device) is a one-line DegustaError."""
     try:
         st = path.stat()
     except FileNotFoundError:
@@ -359,7 +360,7 @@ def _open_regular(path: Path, limit: int):
     except OSError as e:  # a symlink loop (ELOOP), a path through a file (ENOTDIR), no permission ...
         raise DegustaError(f"{path}: cannot read ({e.strerror or e})") from None
     if stat.S_ISDIR(st.st_mode):
-        raise DegustaError(f"{path}: is a folder, expected a file")
+        raise DegustaError(f"{path}: is a folder, expected {what}")
     if not stat.S_ISREG(st.st_mode):
         raise DegustaError(f"{path}: not a regular file")
     if st.st_size > limit:
@@ -377,7 +378,7 @@ def read_json(path: str | os.PathLike) -> Any:
     deep nesting, folders, symlink loops and files over MAX_JSON_BYTES are errors, never tracebacks.
     """
     path = Path(path)
-    with _open_regular(path, MAX_JSON_BYTES) as f:
+    with open_regular(path, MAX_JSON_BYTES) as f:
         try:
             data = f.read(MAX_JSON_BYTES + 1)
         except OSError as e:
@@ -407,7 +408,7 @@ def read_jsonl(path: str | os.PathLike) -> Iterator[tuple[int, Any]]:
     MAX_JSONL_BYTES are refused.
     """
     path = Path(path)
-    with _open_regular(path, MAX_JSONL_BYTES) as f:
+    with open_regular(path, MAX_JSONL_BYTES) as f:
         lineno = 0
         while True:
             try:

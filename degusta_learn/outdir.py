@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import refuse_overwriting_inputs
+from degusta_learn.fileio import UMASK, refuse_overwriting_inputs
 
 
 @dataclass(frozen=True)
@@ -62,12 +62,6 @@ class OutputKind:
     def foreign(self, folder: Path) -> list[str]:
         """Entries of `folder` this command does not write (sorted)."""
         return sorted(p.name for p in folder.iterdir() if not self.owns_name(p.name))
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 _STAGE = r"\.{name}\.(\d+)-[a-z0-9_]+\.tmp"
@@ -238,7 +232,7 @@ def write_folder(target: str | os.PathLike, kind: OutputKind, keep: Sequence[str
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.{os.getpid()}-", suffix=".tmp", dir=target.parent))
-        stage.chmod(0o777 & ~_umask())  # mkdtemp makes it private; an output folder is an ordinary folder
+        stage.chmod(0o777 & ~UMASK)  # mkdtemp makes it private; an output folder is an ordinary folder
     except OSError as e:
         raise DegustaError(f"{target}: cannot create the output folder ({e.strerror or e})") from None
     try:

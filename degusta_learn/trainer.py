@@ -55,7 +55,7 @@ from typing import Any
 
 import yaml
 
-from degusta_learn.config import bounded, read_yaml, to_dict
+from degusta_learn.config import bounded, read_yaml, seed_field, to_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_text
 
@@ -79,7 +79,7 @@ class TrainerConfig:
     """Parent folder of run folders."""
     resume: bool = True
     """Continue from `<run>/last.ckpt` when it exists (false: refuse to reuse a folder that has one)."""
-    seed: int = bounded(0, 0, 2**32 - 1)
+    seed: int = seed_field()
     """Seed for Python, numpy, torch and data-loader workers."""
     max_epochs: int = bounded(10, 1, 1_000_000, special=(-1,))
     """Stop after this many epochs (-1: no epoch limit, use max_steps)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from degusta_learn.config import bounded
+from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.lora import LoraConfig
 from degusta_learn.trainer import TrainerConfig
@@ -117,7 +117,7 @@ class FinetuneConfig:
     """Dataset folder; train/val participants come from its seeded split."""
     method: str = "mogma"
     """Prompting method whose prompts and answer format are learned: mogma, logma (grid) or mouma, louma."""
-    seed: int = bounded(0, 0, 2**32 - 1)
+    seed: int = seed_field()
     """Seed of the participant split (use the same `seed` in predict configs) and of training."""
     model: ModelConfig = field(default_factory=ModelConfig)
     """Which VLM."""

@@ -61,27 +61,26 @@ _SMOLVLM_PROCESSOR = dict(  # [S256] preprocessor_config.json + processor_config
 _SMOLVLM_IDS = dict(image_token_id=49190, bos_token_id=1, eos_token_id=2, pad_token_id=2,  # [S256] config.json
                     generation_eos_token_id=49279, generation_bos_token_id=0)  # [S256] generation_config.json
 
+
+def _smolvlm(size: str, source: str, params: int, params_source: str, **text) -> dict:
+    """A SmolVLM entry: the 256M and 500M share the SigLIP tower, processor and ids; only the text model differs."""
+    return {
+        "hub_id": f"HuggingFaceTB/SmolVLM-{size.upper()}-Instruct", "family": "idefics3",
+        "configs": [f"configs/finetune_smolvlm_{size}.yaml"], "source": source,
+        "published_params": params, "published_params_source": params_source, "scale_factor": 4,
+        "text": dict(head_dim=64, vocab_size=49280, max_position_embeddings=8192, rope_theta=100000.0,
+                     rms_norm_eps=1e-5, tie_word_embeddings=False, **text),
+        "vision": _SMOLVLM_VISION, "processor": _SMOLVLM_PROCESSOR, "ids": _SMOLVLM_IDS,
+    }
+
+
 REPLICAS: dict[str, dict] = {
-    "smolvlm_256m": {
-        "hub_id": "HuggingFaceTB/SmolVLM-256M-Instruct", "family": "idefics3",
-        "configs": ["configs/finetune_smolvlm_256m.yaml"], "source": "S256",
-        "published_params": 256_484_928, "published_params_source": "[S256] meta-device build of the real config.json",
-        "scale_factor": 4,
-        "text": dict(hidden_size=576, intermediate_size=1536, num_hidden_layers=30, num_attention_heads=9,
-                     num_key_value_heads=3, head_dim=64, vocab_size=49280, max_position_embeddings=8192,
-                     rope_theta=100000.0, rms_norm_eps=1e-5, tie_word_embeddings=False),
-        "vision": _SMOLVLM_VISION, "processor": _SMOLVLM_PROCESSOR, "ids": _SMOLVLM_IDS,
-    },
-    "smolvlm_500m": {
-        "hub_id": "HuggingFaceTB/SmolVLM-500M-Instruct", "family": "idefics3",
-        "configs": ["configs/finetune_smolvlm_500m.yaml"], "source": "S500",
-        "published_params": 507_000_000, "published_params_source": "[S500] model card: 507M",
-        "scale_factor": 4,
-        "text": dict(hidden_size=960, intermediate_size=2560, num_hidden_layers=32, num_attention_heads=15,
-                     num_key_value_heads=5, head_dim=64, vocab_size=49280, max_position_embeddings=8192,
-                     rope_theta=100000.0, rms_norm_eps=1e-5, tie_word_embeddings=False),
-        "vision": _SMOLVLM_VISION, "processor": _SMOLVLM_PROCESSOR, "ids": _SMOLVLM_IDS,
-    },
+    "smolvlm_256m": _smolvlm("256m", "S256", 256_484_928, "[S256] meta-device build of the real config.json",
+                             hidden_size=576, intermediate_size=1536, num_hidden_layers=30, num_attention_heads=9,
+                             num_key_value_heads=3),
+    "smolvlm_500m": _smolvlm("500m", "S500", 507_000_000, "[S500] model card: 507M",
+                             hidden_size=960, intermediate_size=2560, num_hidden_layers=32, num_attention_heads=15,
+                             num_key_value_heads=5),
     "qwen2vl_2b": {
         "hub_id": "Qwen/Qwen2-VL-2B-Instruct", "family": "qwen2vl",
         "configs": ["configs/finetune_qwen2vl_2b.yaml"], "source": "Q2B",

@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, Dataset as TorchDataset
 
 from degusta_learn.baselines.learned.features import onto_surface
 from degusta_learn.baselines.learned.slots import collate_slots
-from degusta_learn.config import bounded
+from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import CONTEXT_LENGTHS, Arrangement, Dataset, Episode, Placement, make_episodes
 from degusta_learn.scene.episodes import split_participants
@@ -48,7 +48,7 @@ class DataConfig:
 
     dataset: str = "data/naturalistic"
     """Dataset folder (`degusta data generate naturalistic --out data/naturalistic`)."""
-    split_seed: int = bounded(0, 0, 2**32 - 1)
+    split_seed: int = seed_field()
     """Seed of the participant split; use the same `seed` in predict configs so test stays unseen."""
     context_lengths: list[int] = field(default_factory=lambda: [0, 2, 4])
     """Context lengths mixed during training (one model for all)."""

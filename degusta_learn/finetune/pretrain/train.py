@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from degusta_learn.config import bounded
+from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.config import EvalConfig, GridConfig, OptimConfig
 from degusta_learn.finetune.pretrain.base import OUTPUT_STRIDE, BaseArchitecture
@@ -69,7 +69,7 @@ class PretrainConfig:
     """Trainer name (TRAINERS)."""
     dataset: str | None = None
     """null: the embedded default catalog and tables; a dataset folder: its catalog.json and tables.json (its arrangements are never read)."""
-    seed: int = bounded(0, 0, 2**32 - 1)
+    seed: int = seed_field()
     """Seed of the weights and of the example streams (validation uses seed + 1,000,003)."""
     model: BaseArchitecture = field(default_factory=BaseArchitecture)
     """Sizes of the FastVLM built from random weights."""
