@@ -3,9 +3,11 @@
 Usage (CPU smoke run, a minute):
     degusta data generate naturalistic --out data/naturalistic
     degusta data episodes data/naturalistic --context 4 --split test --out data/naturalistic/episodes_k4.jsonl
+    degusta data export-sft --config configs/finetune_tiny_cpu.yaml --out exports/tiny_sft   # TRL / LLaMA-Factory
     degusta predict --config configs/baseline_copy_nearest.yaml
     degusta evaluate --dataset data/naturalistic --predictions runs/baseline_copy_nearest/predictions.jsonl --out runs/eval
     degusta quickstart                                   # everything above and more, one report
+    degusta configs list                                 # the shipped configs; --config takes their names
 
 Every user mistake raises DegustaError: printed on one line as "degusta: error: ...", exit status 2.
 """
@@ -13,12 +15,14 @@ Every user mistake raises DegustaError: printed on one line as "degusta: error: 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
 from degusta_learn.config import MAX_SEED
 from degusta_learn.errors import DegustaError
+from degusta_learn.names import CONTEXT_LENGTHS, PROMPT_METHODS, SPLITS
 
 
 def cmd_data_generate(args) -> str:
@@ -26,6 +30,14 @@ def cmd_data_generate(args) -> str:
 
     out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite)
     return f"wrote the {args.name} dataset (SYNTHETIC) to {out}"
+
+
+def cmd_data_export_sft(args) -> str:
+    from degusta_learn.finetune.export_sft import export_sft
+
+    out, n, images = export_sft(args.config, args.out, split=args.split, overrides=args.set)
+    return (f"wrote {n} {args.split} examples ({images} images) to {out}: {args.split}.jsonl (TRL messages + "
+            f"images), {args.split}_sharegpt.jsonl + dataset_info.json (LLaMA-Factory); see {out}/README.md")
 
 
 def cmd_data_validate(args) -> str:
@@ -99,6 +111,35 @@ def cmd_quickstart(args) -> str:
     return f"quickstart finished: open {report / 'report.md'} (or {report / 'report.html'} in a browser)"
 
 
+def cmd_configs_list(args) -> str:
+    from degusta_learn.shipped import SHIPPED_DIR, list_configs
+
+    rows = list_configs()
+    width = max(len(name) for name, _ in rows)
+    return "\n".join([f"{len(rows)} shipped configs in {SHIPPED_DIR}:",
+                      *(f"  {name:<{width}}  {text}" for name, text in rows),
+                      "run one by name (degusta train --config learned_cpu) or copy one out to edit "
+                      "(degusta configs copy NAME [DIR])"])
+
+
+def cmd_configs_copy(args) -> str:
+    from degusta_learn.shipped import copy_config, run_command
+
+    target = copy_config(args.name, args.dest)
+    command = run_command(target, target)
+    return f"wrote {target}" + (f"; run it with: {command}" if command else "")
+
+
+def _config_arg(text: str) -> Path:
+    """An argparse type: --config as a path (an existing one wins) or a shipped config name."""
+    from degusta_learn.shipped import resolve_config
+
+    try:
+        return resolve_config(text)
+    except DegustaError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with the toolkit's error line: `degusta: error: ...` (one line, exit 2), not a usage dump."""
 
@@ -123,6 +164,7 @@ def _int_in(lo: int, hi: int) -> Callable[[str], int]:
 
 
 SEED = _int_in(0, MAX_SEED)
+CONFIG_HELP = "a YAML file, or the name of a shipped config (degusta configs list)"
 IMAGE_SIZE = _int_in(16, 4096)
 
 
@@ -144,20 +186,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_data_validate)
     p = data.add_parser("episodes", help="write episodes.jsonl for a context length and split")
     p.add_argument("dir", type=Path)
-    p.add_argument("--context", type=int, choices=[0, 2, 4], required=True)
-    p.add_argument("--split", default="test", choices=["train", "val", "test", "all"])
+    p.add_argument("--context", type=int, choices=list(CONTEXT_LENGTHS), required=True)
+    p.add_argument("--split", default="test", choices=list(SPLITS))
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--out", required=True, type=Path)
     p.set_defaults(func=cmd_data_episodes)
+    p = data.add_parser("export-sft", help="a finetune config's training examples as a messages + images "
+                        "dataset (TRL, LLaMA-Factory)")
+    p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP + " (kind: finetune)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--split", default="train", choices=["train", "val"])
+    p.set_defaults(func=cmd_data_export_sft)
 
     p = verbs.add_parser("predict", help="run any method from a YAML config -> predictions.jsonl")
-    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--dry-run", action="store_true", help="count requests and cost; call nothing")
     p.set_defaults(func=cmd_predict)
 
     p = verbs.add_parser("train", help="train a learned baseline or fine-tune a VLM from a YAML config")
-    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--dry-run", action="store_true", help="print model size, trainable parameters, tokens per "
                    "example vs data.max_length, steps per epoch and predicted memory; load and write nothing")
@@ -173,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_evaluate)
 
     p = verbs.add_parser("compare", help="several methods on the same episodes -> one report folder")
-    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.set_defaults(func=cmd_compare)
 
@@ -184,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--participant", required=True)
     p.add_argument("--target", type=_int_in(0, 999_999_999), required=True, help="the target trial")
     p.add_argument("--context", type=_int_in(0, 1000), required=True, help="context length (e.g. 0, 2, 4)")
-    p.add_argument("--method", required=True, choices=["louma", "logma", "mouma", "mogma"])
+    p.add_argument("--method", required=True, choices=list(PROMPT_METHODS))
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--size", type=IMAGE_SIZE, default=448, help="image size in pixels")
     p.add_argument("--grid", type=_int_in(1, 26), default=8, help="grid rows = columns for logma/mogma")
@@ -202,6 +251,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--with-api", action="store_true",
                    help="add a zero-shot GPT-4o MOGMA row (needs OPENAI_API_KEY; prints the cost first)")
     p.set_defaults(func=cmd_quickstart)
+
+    configs = verbs.add_parser("configs", help="the configs shipped with the package: list them, copy one to edit"
+                               ).add_subparsers(dest="configs_verb", required=True)
+    p = configs.add_parser("list", help="every shipped config with its one-line purpose")
+    p.set_defaults(func=cmd_configs_list)
+    p = configs.add_parser("copy", help="write a shipped config out to edit (never overwrites)")
+    p.add_argument("name", help="a shipped config name, with or without .yaml (degusta configs list)")
+    p.add_argument("dest", nargs="?", type=Path, default=Path("."),
+                   help="the folder to write NAME.yaml into (default: here), or a .yaml file name")
+    p.set_defaults(func=cmd_configs_copy)
     return parser
 
 
@@ -222,7 +281,10 @@ def main(argv: list[str] | None = None) -> int:
         print("degusta: interrupted; finished work is kept (re-run to resume)", file=sys.stderr)
         return 130
     if message:
-        print(message)
+        try:
+            print(message)
+        except BrokenPipeError:  # e.g. `degusta configs list | head`: the reader took what it wanted
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
     return 0
 
 

@@ -228,12 +228,31 @@ def _check_bounds(value: Any, bounds: tuple, where: str, key: str) -> None:
             raise DegustaError(f"{where}: {key}: expected {want}, got {_show(v)}")
 
 
+def check_choices(obj: Any, section: str) -> None:
+    """Check every `Literal` field of dataclass `obj` against its choices, naming `section.field`: the loader
+    does this for YAML and `--set`; a dataclass built in Python calls this from its `__post_init__`."""
+    for name, tp in typing.get_type_hints(type(obj)).items():
+        if get_origin(tp) is Literal and hasattr(obj, name):
+            choices, value = get_args(tp), getattr(obj, name)
+            if not any(type(value) is type(c) and value == c for c in choices):
+                raise DegustaError(f"{section + '.' if section else ''}{name}: expected one of {list(choices)}, got {_show(value)}")
+
+
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix: str = "") -> T:
     """Build dataclass `cls` from `data`, checking unknown keys, missing keys and types."""
     if not isinstance(data, dict):
         raise DegustaError(f"{where}: {prefix.rstrip('.') or 'config'}: expected a mapping, got {_show(data)}")
+    if hasattr(cls, "section_class"):  # a section whose class one of its keys picks (backend: {name: hf} -> HFConfig)
+        try:
+            cls = cls.section_class(data, prefix)
+        except DegustaError as e:
+            raise DegustaError(f"{where}: {e}") from None
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields), key=str)
+    renamed = [k for k in unknown if isinstance(k, str) and k in getattr(cls, "RENAMED", {})]
+    if renamed:  # an old spelling: say the one key every config kind now uses for the concept
+        raise DegustaError(f"{where}: '{prefix}{renamed[0]}' is now '{cls.RENAMED[renamed[0]]}' "
+                           "(one spelling per concept across config kinds: docs/configs.md)")
     if unknown:
         name = unknown[0] if isinstance(unknown[0], str) and len(unknown[0]) <= 60 else _show(unknown[0])
         raise DegustaError(
@@ -360,6 +379,10 @@ def _kind(value: Any) -> str:
 
 
 def _name(tp: Any) -> str:
+    if get_origin(tp) in (Union, types.UnionType):  # e.g. "int or 'auto'", not "Union"
+        return " or ".join(_name(a) for a in get_args(tp) if a is not type(None))
+    if get_origin(tp) is Literal:
+        return " or ".join(repr(a) for a in get_args(tp))
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 

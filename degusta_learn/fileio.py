@@ -9,11 +9,15 @@ with the file into one `DegustaError` naming the file (and line, and where it ca
 file, a folder, a symbolic-link loop, a device, non-UTF-8 bytes, invalid JSON, NaN / Infinity, a float
 that overflows to infinity, an integer of more than MAX_INT_DIGITS digits, a key given twice in one
 object, nesting too deep for the parser, a lone-surrogate escape, a file or line over the size limits.
+
+`file_sha256` and `stat_tree` identify files (by their bytes, or cheaply by size and time): the dataset
+fingerprint (`scene.dataset.dataset_identity`) and compare's staleness records are built from them.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
@@ -436,3 +440,37 @@ def read_jsonl(path: str | os.PathLike) -> Iterator[tuple[int, Any]]:
             except ValueError as e:
                 raise DegustaError(f"{path}:{lineno}: invalid JSON ({e})") from None
             yield lineno, obj
+
+
+def file_sha256(path: str | os.PathLike) -> str | None:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks; None if it cannot be read."""
+    h = hashlib.sha256()
+    try:
+        with Path(path).open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def stat_tree(path: str | os.PathLike, limit: int = 5000) -> list:
+    """[relative path, size, mtime_ns] of a file, or of the files under a folder (sorted, at most `limit`):
+    a cheap identity of a checkpoint or picture folder, without reading the bytes."""
+    path = Path(path)
+    if path.is_file():
+        st = path.stat()
+        return [[path.name, st.st_size, st.st_mtime_ns]]
+    out = []
+    for root, dirs, files in os.walk(path):
+        dirs.sort()
+        for name in sorted(files):
+            full = Path(root) / name
+            try:
+                st = full.stat()
+            except OSError:
+                continue
+            out.append([str(full.relative_to(path)), st.st_size, st.st_mtime_ns])
+            if len(out) >= limit:
+                return out
+    return out

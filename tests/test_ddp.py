@@ -143,7 +143,7 @@ def test_learned_ddp_killed_resumed_and_equal_to_one_process(world):
     from degusta_learn.config import load_config
 
     runs = world["tmp"] / "runs"
-    base = [f"data.dataset={world['data']}", "data.batch_size=8", "data.repeats=1", "model.d_model=16",
+    base = [f"dataset={world['data']}", "data.batch_size=8", "data.repeats=1", "model.d_model=16",
             "model.n_layers=1", "model.n_heads=2", "model.d_ff=32", "model.max_objects=8",
             f"trainer.run_dir={runs}", "trainer.run_name=learned", "trainer.max_epochs=-1",
             "trainer.val_check_interval=2", *DDP]

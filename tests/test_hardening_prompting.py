@@ -20,6 +20,7 @@ from loopback import Loopback, chat_completion, json_reply
 
 from degusta_learn.cli import main as cli_main
 from degusta_learn.prompting.answers import AnswerParseError, parse_answer, read_answer
+from degusta_learn.prompting.backends.anthropic import AnthropicBackend
 from degusta_learn.prompting.backends.base import BACKENDS, Completion, redact
 from degusta_learn.prompting.cache import ResponseCache
 from degusta_learn.render.grid import Grid
@@ -416,7 +417,7 @@ def test_an_answer_is_committed_before_it_is_parsed(tmp_path, dataset_dir, serve
     assert len(server.requests) == 9, "no episode may be asked twice"
 
 
-class PerSample:
+class PerSample(AnthropicBackend):
     """A one-answer-per-request backend (like anthropic / gemini) that checks the cache between calls."""
 
     name, calls = "anthropic", []
@@ -424,7 +425,7 @@ class PerSample:
 
     @classmethod
     def from_config(cls, cfg, grid=None, catalog=None):
-        obj = cls()
+        obj = cls.__new__(cls)
         obj.model = cfg.model
         return obj
 

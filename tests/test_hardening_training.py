@@ -38,7 +38,7 @@ def data_root(tmp_path_factory) -> Path:
 def learned_yaml(tmp_path: Path, data: Path | str, **trainer) -> Path:
     """The tiniest learned config, written as a user's YAML file; runs go to tmp_path/runs/tiny."""
     cfg = {"kind": "learned", "num_threads": 1,
-           "data": {"dataset": str(data), "batch_size": 8, "repeats": 1, "val_context_lengths": [2]},
+           "dataset": str(data), "data": {"batch_size": 8, "repeats": 1, "val_contexts": [2]},
            "model": {"d_model": 16, "n_layers": 1, "n_heads": 2, "d_ff": 32, "max_objects": 8},
            "trainer": {"run_dir": str(tmp_path / "runs"), "run_name": "tiny", "max_epochs": -1, "max_steps": 1,
                        "val_check_interval": 1, "accelerator": "cpu", "devices": 1, "progress_bar": False,
@@ -296,10 +296,10 @@ def test_same_dataset_by_relative_and_absolute_path_resumes(tmp_path, data_root,
     monkeypatch.chdir(data_root.parent)
     cfg = learned_yaml(tmp_path, os.path.relpath(data_root), monitor=None)
     assert train(cfg) == 0
-    assert train(cfg, f"data.dataset={data_root}", "trainer.max_steps=2") == 0  # same folder, absolute
+    assert train(cfg, f"dataset={data_root}", "trainer.max_steps=2") == 0  # same folder, absolute
     assert torch.load(tmp_path / "runs" / "tiny" / "last.ckpt", weights_only=True)["global_step"] == 2
     other = save_dataset(make_small_dataset(seed=1), tmp_path / "other")
-    with pytest.raises(DegustaError, match="cannot resume, 'data.dataset' was"):
+    with pytest.raises(DegustaError, match="cannot resume, 'dataset' was"):
         from degusta_learn.methods import run_train
 
-        run_train(cfg, [f"data.dataset={other}", "trainer.max_steps=3"])
+        run_train(cfg, [f"dataset={other}", "trainer.max_steps=3"])

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 
 def tiny_config(tmp_path, dataset="unused", **trainer) -> dict:
     return {"kind": "learned", "num_threads": 1,
-            "data": {"dataset": str(dataset), "batch_size": 8, "repeats": 1},
+            "dataset": str(dataset), "data": {"batch_size": 8, "repeats": 1},
             "model": {"d_model": 16, "n_layers": 1, "n_heads": 2, "d_ff": 32, "max_objects": 8},
             "trainer": {"run_dir": str(tmp_path), "run_name": "tiny", "max_epochs": -1, "max_steps": 3,
                         "accelerator": "cpu", "devices": 1, "progress_bar": False, "log_every_n_steps": 1,
@@ -116,9 +116,14 @@ def test_other_catalog_is_refused(trained, tmp_path):
 @pytest.mark.parametrize("override, message", [
     ("model.d_modle=8", "unknown key 'model.d_modle'"),
     ("model.d_model=big", "model.d_model: expected int"),
-    ("data.context_lengths=[3]", "data.context_lengths"),
+    ("data.contexts=[3]", "data.contexts"),
     ("model.n_heads=3", "model.n_heads: 3 does not divide"),
     ("kind=finetune_typo", "unknown trainer kind"),
+    # old spellings (one spelling per concept across config kinds) name the key that replaced them
+    ("data.dataset=x", "'data.dataset' is now 'dataset'"),
+    ("data.split_seed=1", "'data.split_seed' is now 'seed'"),
+    ("data.context_lengths=[2]", "'data.context_lengths' is now 'data.contexts'"),
+    ("data.val_context_lengths=[2]", "'data.val_context_lengths' is now 'data.val_contexts'"),
 ])
 def test_bad_config_names_the_key(tmp_path, override, message):
     cfg = tmp_path / "c.yaml"
@@ -136,6 +141,6 @@ def test_too_few_participants_is_a_clear_error(tmp_path):
 
     root = save_dataset(make_small_dataset(n_participants=2), tmp_path / "two")
     with pytest.raises(DegustaError, match="2 participant.*too few for a train/val/test split"):
-        run_train(None, [f"{k}={v}" for k, v in {"kind": "learned", "data.dataset": root,
+        run_train(None, [f"{k}={v}" for k, v in {"kind": "learned", "dataset": root,
                                                   "trainer.run_dir": tmp_path}.items()])
     assert not (tmp_path / "learned").exists()

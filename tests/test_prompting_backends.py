@@ -12,8 +12,10 @@ from conftest import make_small_dataset
 from degusta_learn.config import from_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import get_method, run_predict
-from degusta_learn.prompting.backends.base import BACKENDS, BackendConfig, make_backend, redact
-from degusta_learn.prompting.costs import Ledger, image_tokens, price
+from degusta_learn.prompting.backends.base import (
+    BACKENDS, BackendConfig, backend_class, backend_config, make_backend, redact,
+)
+from degusta_learn.prompting.costs import Ledger, price
 from degusta_learn.scene import make_episodes, read_predictions, save_dataset
 
 GOOD = "[{'type': 'plate', 'id': 75, 'position': ['D4'], 'cardinal_direction': 'N'}]"
@@ -41,17 +43,17 @@ def test_config_names_the_bad_key():
 def test_keys_come_only_from_the_environment(monkeypatch):
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     with pytest.raises(DegustaError, match="OPENAI_API_KEY is not set"):
-        make_backend(BackendConfig(name="openai", model="gpt-4o"))
+        make_backend(backend_config("openai", model="gpt-4o"))
     # a local server needs none, and never gets the OpenAI key unless asked to
     monkeypatch.setenv("OPENAI_API_KEY", "sk-real-openai-key-000")
-    backend = make_backend(BackendConfig(name="openai", base_url="http://127.0.0.1:8000/v1"))
+    backend = make_backend(backend_config("openai", base_url="http://127.0.0.1:8000/v1"))
     assert backend.client.api_key == "not-needed"
     monkeypatch.setenv("LOCAL_KEY", "local-secret-123")
-    backend = make_backend(BackendConfig(name="openai", base_url="http://127.0.0.1:8000/v1", api_key_env="LOCAL_KEY"))
+    backend = make_backend(backend_config("openai", base_url="http://127.0.0.1:8000/v1", api_key_env="LOCAL_KEY"))
     assert backend.client.api_key == "local-secret-123"
     monkeypatch.delenv("ANTHROPIC_API_KEY", raising=False)
     with pytest.raises(DegustaError, match="ANTHROPIC_API_KEY is not set"):
-        make_backend(BackendConfig(name="anthropic", model="claude-3-haiku-20240307"))
+        make_backend(backend_config("anthropic", model="claude-3-haiku-20240307"))
 
 
 def test_redact_scrubs_keys(monkeypatch):
@@ -63,11 +65,11 @@ def test_missing_extras_say_what_to_install(monkeypatch):
     monkeypatch.setenv("GEMINI_API_KEY", "x")
     monkeypatch.setitem(sys.modules, "google.genai", None)  # as if google-genai were not installed
     with pytest.raises(DegustaError, match=r"pip install degusta_learn\[gemini\]"):
-        make_backend(BackendConfig(name="gemini", model="gemini-1.5-pro"))
+        make_backend(backend_config("gemini", model="gemini-1.5-pro"))
     monkeypatch.setenv("ANTHROPIC_API_KEY", "x")
     monkeypatch.setitem(sys.modules, "anthropic", None)
     with pytest.raises(DegustaError, match=r"pip install degusta_learn\[anthropic\]"):
-        make_backend(BackendConfig(name="anthropic", model="claude-3-haiku-20240307"))
+        make_backend(backend_config("anthropic", model="claude-3-haiku-20240307"))
 
 
 def test_replay_reproduces_a_run_without_calls(tmp_path):
@@ -104,9 +106,11 @@ def test_prices_and_image_tokens():
     assert price("gpt-4o-mini-2024-07-18") == (0.15, 0.6)        # longest prefix wins
     assert price("my-local-model") is None and price("m", {"m": [1, 2]}) == (1, 2)
     # OpenAI's published examples: 1024x1024 high detail = 765 tokens; 2048x4096 = 1105; low = 85
-    assert image_tokens(1024, 1024, "openai") == 765 and image_tokens(2048, 4096, "openai") == 1105
-    assert image_tokens(448, 448, "openai", "low") == 85 and image_tokens(448, 448, "openai") == 255
-    assert image_tokens(1000, 1000, "anthropic") == 1334  # (1000 x 1000) / 750, rounded up
+    tokens, openai, low = backend_class("openai").image_tokens, backend_config("openai"), backend_config(detail="low")
+    assert tokens(1024, 1024, openai) == 765 and tokens(2048, 4096, openai) == 1105
+    assert tokens(448, 448, low) == 85 and tokens(448, 448, openai) == 255
+    # (1000 x 1000) / 750, rounded up
+    assert backend_class("anthropic").image_tokens(1000, 1000, backend_config("anthropic")) == 1334
     # the paper's anchor at its 2024 GPT-4o price: 8,035 in + 6,250 out ~ USD 0.13 (reported 0.15, rounded up per column)
     ledger = Ledger(price("gpt-4o-2024-05-13"))
     ledger.record(8035, 6250, 5, fallback=(0, 0))

@@ -33,7 +33,7 @@ from degusta_learn.methods import run_predict
 from degusta_learn.prompting.answers import (
     STRUCTURED_KEY, STRUCTURED_NAME, answer_items, answer_schema, format_answer_json, read_answer,
 )
-from degusta_learn.prompting.backends.base import BackendConfig
+from degusta_learn.prompting.backends.base import BackendConfig, backend_config
 from degusta_learn.prompting.backends.gemini import gemini_schema
 from degusta_learn.render.grid import DIRECTIONS, Grid
 from degusta_learn.scene import default_catalog, read_predictions, save_dataset
@@ -289,7 +289,7 @@ def test_hf_and_unknown_paths_are_one_line_errors():
     with pytest.raises(DegustaError, match=r"^backend.structured_output: the hf backend takes no JSON schema.*"
                                            r"backend.constrained: true"):
         BackendConfig(name="hf", model="m", structured_output=True)
-    BackendConfig(name="replay", path="x", structured_output=True)  # replay: ignored (both kinds parse)
+    backend_config("replay", path="x", structured_output=True)  # replay: ignored (both kinds parse)
 
 
 # ----------------------------------------------------------------------------- Anthropic

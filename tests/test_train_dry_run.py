@@ -79,7 +79,7 @@ def test_cli_dry_run_one_line_error_exit_2(tmp_path, data, capsys):
 
 
 def test_learned_dry_run(tmp_path, data):
-    base = [f"data.dataset={data}", f"trainer.run_dir={tmp_path / 'runs'}", "model.d_model=16", "model.n_layers=1",
+    base = [f"dataset={data}", f"trainer.run_dir={tmp_path / 'runs'}", "model.d_model=16", "model.n_layers=1",
             "model.n_heads=2", "model.d_ff=32", "model.max_objects=12"]
     text = _lines(CONFIGS / "learned_cpu.yaml", base)
     for needle in ("slot model", "parameters", "slots per example", "of model.max_objects 12", "steps per epoch",
@@ -121,7 +121,7 @@ def test_impossible_device_counts_name_the_key(tmp_path, data):
     with pytest.raises(DegustaError, match="num_nodes: expected a value from 1"):
         load_config(TrainerConfig, None, ["num_nodes=0"])
     # a real run refuses before anything is written; the dry run reports it as a failing check instead
-    base = [f"data.dataset={data}", f"trainer.run_dir={tmp_path / 'runs'}", "trainer.accelerator=cpu",
+    base = [f"dataset={data}", f"trainer.run_dir={tmp_path / 'runs'}", "trainer.accelerator=cpu",
             f"trainer.devices={cores * 32}", "model.d_model=16", "model.n_layers=1", "model.n_heads=2", "model.d_ff=32"]
     with pytest.raises(DegustaError, match="^trainer.devices: "):
         run_train(CONFIGS / "learned_cpu.yaml", base)

@@ -83,7 +83,7 @@ def test_refuses_to_overwrite_or_mix_runs(tmp_path):
     ({"max_epochs": "ten"}, "max_epochs: expected int"),
     ({"run_name": "a/b"}, "trainer.run_name"),
     ({"max_epochs": -1, "max_steps": -1}, "set at least one"),
-    ({"monitor_mode": "lowest"}, "trainer.monitor_mode"),
+    ({"monitor_mode": "lowest"}, "monitor_mode: expected one of \\[.min., .max.\\]"),
 ])
 def test_bad_trainer_config_names_the_key(data, message):
     with pytest.raises(DegustaError, match=message):

@@ -32,7 +32,6 @@ import dataclasses
 import hashlib
 import itertools
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,11 +41,13 @@ from degusta_learn.config import bounded, load_config, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import METHOD_NAME, EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import rank_methods, summarize
-from degusta_learn.fileio import atomic_write_json, refuse_overwriting_inputs
+from degusta_learn.fileio import atomic_write_json, file_sha256, refuse_overwriting_inputs, stat_tree
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
 from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
 from degusta_learn.render.lifting import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
 from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
+from degusta_learn.shipped import resolve_or_keep
+from degusta_learn.scene.dataset import dataset_identity  # also what fine-tuned adapters record
 from degusta_learn.scene import (
     CONTEXT_LENGTHS, Dataset, Episode, Prediction, load_dataset, make_episodes, read_episodes, read_predictions,
     write_predictions,
@@ -93,6 +94,8 @@ class MethodEntry:
                                "<out>/predictions/")
         if (self.predictions is None) == (self.config is None):
             raise DegustaError(f"methods entry {self.name!r}: give exactly one of 'predictions' or 'config'")
+        if isinstance(self.config, str):  # a shipped name (or configs/NAME.yaml outside a checkout) works too
+            self.config = resolve_or_keep(self.config)
 
 
 @dataclass
@@ -105,7 +108,7 @@ class CompareConfig:
     """Report folder."""
     methods: list[MethodEntry]
     """The methods; the report ranks them by mean set RMSD (degenerate ones last), this order breaks ties."""
-    contexts: list[int] = field(default_factory=lambda: [0, 2, 4])
+    contexts: list[int] = field(default_factory=lambda: list(CONTEXT_LENGTHS))
     """Context lengths to build episodes for (ignored when `episodes` is set)."""
     split: str = "test"
     """Participant split of the episodes."""
@@ -174,37 +177,6 @@ def _sha(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _file_sha(path: Path) -> str | None:
-    h = hashlib.sha256()
-    try:
-        with path.open("rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-    except OSError:
-        return None
-    return h.hexdigest()
-
-
-def _stat_tree(path: Path, limit: int = 5000) -> list:
-    """(relative path, size, mtime) of a file or of the files under a folder: cheap identity of a checkpoint."""
-    if path.is_file():
-        st = path.stat()
-        return [[path.name, st.st_size, st.st_mtime_ns]]
-    out = []
-    for root, dirs, files in os.walk(path):
-        dirs.sort()
-        for name in sorted(files):
-            full = Path(root) / name
-            try:
-                st = full.stat()
-            except OSError:
-                continue
-            out.append([str(full.relative_to(path)), st.st_size, st.st_mtime_ns])
-            if len(out) >= limit:
-                return out
-    return out
-
-
 def _resolved(value, files: dict, key: str = ""):
     """The config without run-control keys; every string naming an existing path adds its file identity."""
     if isinstance(value, dict):
@@ -216,23 +188,10 @@ def _resolved(value, files: dict, key: str = ""):
         try:
             path = Path(value)
             if path.exists():
-                files[key] = _stat_tree(path)
+                files[key] = stat_tree(path)
         except (OSError, ValueError):
             pass
     return value
-
-
-def dataset_identity(ds: Dataset) -> str:
-    """Hash of the dataset folder's files (bytes of the top-level files, size and mtime of deeper ones)."""
-    if ds.root is None:
-        return _sha([e.to_json() for e in ds.arrangements])
-    parts = []
-    for p in sorted(Path(ds.root).iterdir()):
-        if p.is_file():
-            parts.append([p.name, _file_sha(p)])
-        elif p.is_dir():
-            parts.append([p.name, _stat_tree(p)])
-    return _sha(parts)
 
 
 def run_fingerprint(entry: MethodEntry, overrides: list[str], ds_id: str, episodes: list[Episode]) -> tuple[dict, bool]:
@@ -264,7 +223,7 @@ def stale_reason(predictions: Path, parts: dict) -> str | None:
         what = {"config": "config", "files": "version of a file its config names (e.g. a checkpoint)",
                 "dataset": "dataset", "episodes": "episode set"}
         return "it was produced with another " + " and ".join(what.get(k, k) for k in changed)
-    if record.get("predictions_sha256") != _file_sha(predictions):
+    if record.get("predictions_sha256") != file_sha256(predictions):
         return "it was changed after it was produced"
     return None
 
@@ -311,7 +270,7 @@ def _run_config(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, episodes: l
                 log(f"[compare] {entry.name}: {out} is stale ({why}): recomputing")
             log(f"[compare] {entry.name}: predicting" + (f" (context {k})" if k is not None else ""))
             run_predict(entry.config, overrides)
-            atomic_write_json(fingerprint_path(out), {"parts": parts, "predictions_sha256": _file_sha(out),
+            atomic_write_json(fingerprint_path(out), {"parts": parts, "predictions_sha256": file_sha256(out),
                                                       "method": entry.name, "context": k})
         paths.append(out)
     return paths

@@ -8,7 +8,8 @@
 
 Methods appear in rank order (bars left to right, legends top to bottom: summary.rank_methods). A
 degenerate method (most predictions match <= 2 objects) is drawn grey and hatched (bars) or dotted
-(lines), and its label carries summary.DEGENERATE_MARK.
+(lines), and its label carries summary.DEGENERATE_MARK; a method decoded inside the answer grammar carries
+summary.GRAMMAR_MARK.
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from degusta_learn.evaluate.summary import DEGENERATE_MARK, ranked  # noqa: E402
+from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, ranked  # noqa: E402
 from degusta_learn.fileio import atomic_open  # noqa: E402
+from degusta_learn.scene import CONTEXT_LENGTHS  # noqa: E402
 
 _METADATA = {"Software": None}  # no version strings in the PNG: same input, same bytes
 
@@ -53,7 +55,8 @@ def plot_metric_bars(summary: dict[str, dict], path: Path, rmsd_floor: float | N
     summary = ranked(summary)
     methods = list(summary)
     degenerate = [bool(summary[m].get("degenerate")) for m in methods]
-    ticks = [m + ("\n(degenerate)" if d else "") for m, d in zip(methods, degenerate)]
+    ticks = [m + (GRAMMAR_MARK if summary[m].get("constrained") else "") + ("\n(degenerate)" if d else "")
+             for m, d in zip(methods, degenerate)]
     fig, axes = plt.subplots(1, 3, figsize=(max(9, 1.5 * len(methods) + 4), 3.9))
     for ax, metric, title in ((axes[0], "set_rmsd", "set RMSD, ranks the methods (lower is better)"),
                               (axes[1], "rmsd", "Kabsch RMSD, paper (lower is better)"),
@@ -113,7 +116,8 @@ def plot_context(summary: dict[str, dict], path: Path, rmsd_floor: float | None 
         for ax, metric in ((axes[0], "set_rmsd"), (axes[1], "object_accuracy"), (axes[2], "rmsd")):
             ys = [(by[k].get(metric) or {}).get("mean") for k in ks]
             ax.plot([int(k) for k in ks], [np.nan if y is None else y for y in ys], marker="o",
-                    label=method + (DEGENERATE_MARK if s.get("degenerate") else ""),
+                    label=method + (GRAMMAR_MARK if s.get("constrained") else "")
+                    + (DEGENERATE_MARK if s.get("degenerate") else ""),
                     **_line_style(bool(s.get("degenerate"))))
     axes[0].set_title("set RMSD vs context length", fontsize=10)
     axes[1].set_title("object accuracy (paper) vs context length", fontsize=10)
@@ -122,7 +126,7 @@ def plot_context(summary: dict[str, dict], path: Path, rmsd_floor: float | None 
         axes[2].axhline(rmsd_floor, color="#c44e52", ls="--", lw=1, label="8x8 grid floor")
     for ax in axes:
         ax.set_xlabel("context arrangements k")
-        ax.set_xticks([0, 2, 4])
+        ax.set_xticks(list(CONTEXT_LENGTHS))
     axes[2].legend(fontsize=7, title="ranked by set RMSD", title_fontsize=7)
     fig.tight_layout()
     return _save(fig, path)

@@ -25,21 +25,17 @@ import numpy as np
 import yaml
 
 from degusta_learn.config import apply_overrides, read_yaml
-from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_text
+from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.scene import Episode, load_dataset, make_episodes, participants_in, write_episodes
+from degusta_learn.shipped import shipped_config
 
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def _config(name: str, out_dir: Path, overrides: list[str], command: str) -> Path:
-    """Take the shipped configs/<name>.yaml, apply `overrides`, write it to `out_dir` and return that path."""
-    src = CONFIGS / f"{name}.yaml"
-    if not src.is_file():
-        raise DegustaError(f"quickstart needs the shipped {src} (run it from a source checkout installed with "
-                           "`pip install -e .`)")
-    data = apply_overrides(read_yaml(src), overrides)
+    """Take the shipped config `name` (package data), apply `overrides`, write it to `out_dir` and return that path."""
+    data = apply_overrides(read_yaml(shipped_config(name)), overrides)
     path = out_dir / f"{name}.yaml"
     atomic_write_text(path, f"# {command} --config {path}\n# written by degusta quickstart from configs/{name}.yaml\n"
                       + yaml.safe_dump(data, sort_keys=False))
@@ -53,7 +49,7 @@ def quickstart_episodes(ds, seed: int = 0, per_participant: int = 1, participant
     """
     keep = set(participants_in(ds, "test", seed)[:participants])
     chosen = []
-    for k in (0, 2, 4):
+    for k in CONTEXT_LENGTHS:
         by_p: dict[str, list[Episode]] = {}
         for e in make_episodes(ds, k, "test", seed):
             if e.participant in keep:
@@ -99,7 +95,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
 
     step("3/5 training the learned slot model (configs/learned_cpu.yaml)")
     ckpt = out / "checkpoints"
-    learned = _config("learned_cpu", cfg_dir, [f"data.dataset={data_dir}", f"trainer.run_dir={ckpt}",
+    learned = _config("learned_cpu", cfg_dir, [f"dataset={data_dir}", f"trainer.run_dir={ckpt}",
                                                "trainer.run_name=learned"] + (SMALL_LEARNED if small else QUICK_LEARNED),
                       "degusta train")
     run_dir = run_train(learned, [])
@@ -113,7 +109,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
                        [f"dataset={data_dir}", f"model.name={tiny}", f"trainer.run_dir={ckpt}",
                         "trainer.run_name=finetune_tiny"] + (SMALL_FINETUNE if small else []), "degusta train")
     ft_dir = run_train(finetune, [])
-    for name, adapter in (("tiny_vlm_zeroshot", None), ("tiny_vlm_finetuned", ft_dir / "adapter")):
+    for name, adapter in (("tiny_vlm_zeroshot", None), ("tiny_vlm_finetuned", ft_dir / "best_adapter")):
         cfg_name = "predict_hf_tiny_zeroshot" if adapter is None else "predict_hf_tiny_finetuned"
         path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={tiny}",
                                            f"backend.adapter={adapter if adapter else 'null'}",

@@ -34,13 +34,11 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import BackendConfig, Completion, redact
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
-# BackendConfig fields that change what the model answers (timeout, api_key_env, device do not).
 APPLICATION_ID = 0x44475343  # "DGSC": PRAGMA application_id of a degusta response cache
 _SCHEMA = ("CREATE TABLE IF NOT EXISTS responses (key TEXT PRIMARY KEY, episode TEXT, text TEXT NOT NULL, "
            "input_tokens INTEGER, output_tokens INTEGER, created REAL)")
 _COLUMNS = ["key", "episode", "text", "input_tokens", "output_tokens", "created"]
 _SQLITE_MAGIC = b"SQLite format 3\x00"
-ANSWER_FIELDS = ("name", "model", "base_url", "detail", "adapter", "constrained", "dtype", "image_size", "path")
 
 
 def prompt_digest(prompt: Prompt) -> str:
@@ -74,9 +72,10 @@ def sample_keys(prompt: Prompt, backend: BackendConfig, temperature: float, max_
     SHA-256 joins the key, so free-text and structured answers never mix and a changed schema (catalog,
     grid) asks again. Free-text keys are what they always were (caches made before stay valid).
     """
-    base = {"backend": {f: getattr(backend, f) for f in ANSWER_FIELDS}, "prompt": prompt_digest(prompt),
+    fields = backend.answer_fields()  # the backend keys that change answers (timeout, api_key_env, device do not)
+    base = {"backend": fields, "prompt": prompt_digest(prompt),
             "temperature": temperature, "max_tokens": max_tokens, "seed": seed,
-            "model_files": folder_fingerprint(backend.model), "adapter_files": folder_fingerprint(backend.adapter)}
+            "model_files": folder_fingerprint(backend.model), "adapter_files": folder_fingerprint(fields["adapter"])}
     if schema is not None:
         base["structured_output"] = hashlib.sha256(json.dumps(schema, sort_keys=True).encode()).hexdigest()
     head = json.dumps(base, sort_keys=True)

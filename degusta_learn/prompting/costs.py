@@ -5,9 +5,11 @@ Prices are USD per 1M input / output tokens (`DEFAULT_PRICES`, list prices as of
 ("gpt-4o-2024-08-06" -> "gpt-4o"); an unknown model (e.g. a local one) costs 0.
 
 Estimates (for `--dry-run` and the budget check before each request): text ~3 characters a token;
-images by each provider's published rule (OpenAI: 85 + 170 per 512-px tile, 85 at detail "low";
-Anthropic: width x height / 750; Gemini: 258 an image). The paper's anchor (GPT-4o, one 4-context
-experiment, n = 5): 8,035 input + 6,250 output = 14,285 tokens, USD 0.15 at the 2024 price of 5 / 15.
+images by the rule the backend declares (`Backend.image_tokens`: each provider's published rule, e.g.
+OpenAI's 85 + 170 per 512-px tile, `tile_image_tokens`, which is also the estimate for local models).
+Which model price applies is the backend's call too (`Backend.price`: a local backend costs nothing).
+The paper's anchor (GPT-4o, one 4-context experiment, n = 5): 8,035 input + 6,250 output = 14,285
+tokens, USD 0.15 at the 2024 price of 5 / 15.
 
 Example:
     ledger = Ledger(price("gpt-4o", {}), budget_usd=1.0)
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from degusta_learn.prompting.prompt import Prompt
@@ -58,13 +61,9 @@ def price(model: str, overrides: dict[str, Any] | None = None) -> tuple[float, f
     return table[max(prefixes, key=len)] if prefixes else None
 
 
-def image_tokens(width: int, height: int, backend: str, detail: str | None = None) -> int:
-    """Input tokens one image costs at the provider (an estimate for local models)."""
-    if backend == "anthropic":
-        scale = min(1.0, 1568 / max(width, height))
-        return math.ceil(width * scale * height * scale / 750)
-    if backend == "gemini":
-        return 258
+def tile_image_tokens(width: int, height: int, detail: str | None = None) -> int:
+    """Input tokens of one image by OpenAI's published rule (85 + 170 per 512-px tile after fitting the
+    image in 2048 px and its short side in 768 px; 85 at detail "low"); the estimate for local models."""
     if detail == "low":
         return 85
     scale = min(1.0, 2048 / max(width, height))
@@ -74,10 +73,10 @@ def image_tokens(width: int, height: int, backend: str, detail: str | None = Non
     return 85 + 170 * math.ceil(w / 512) * math.ceil(h / 512)
 
 
-def prompt_tokens(prompt: Prompt, backend: str, detail: str | None = None) -> int:
-    """Estimated input tokens of one request carrying `prompt`."""
+def prompt_tokens(prompt: Prompt, image_tokens: Callable[[int, int], int] = tile_image_tokens) -> int:
+    """Estimated input tokens of one request carrying `prompt`; `image_tokens(width, height)` counts an image."""
     text = sum(math.ceil(len(p) / CHARS_PER_TOKEN) for p in prompt.parts if isinstance(p, str))
-    images = sum(image_tokens(*p.image.size, backend, detail) for p in prompt.images)
+    images = sum(image_tokens(*p.image.size) for p in prompt.images)
     return 10 + text + images
 
 

@@ -3,7 +3,9 @@
 Prompts are built exactly as in the real run (so image sizes and text lengths are the real ones) and the
 response cache is opened read-only (never created), so samples already answered are not counted.
 Output tokens per sample are estimated from the canonical answers of the dataset's own arrangements
-(`est_output_tokens` overrides that).
+(`est_output_tokens` overrides that). What a request takes and costs (image tokens, one request per sample
+or n in one, the price) is asked of the backend's class, which is never built: a dry run loads no model
+and needs no key.
 
 Example:
     degusta predict --config configs/zeroshot_mogma_gpt4o.yaml --dry-run
@@ -16,7 +18,7 @@ from typing import Any
 
 from degusta_learn.prompting.answers import answer_items, format_answer
 from degusta_learn.prompting.cache import ResponseCache
-from degusta_learn.prompting.costs import CHARS_PER_TOKEN, cost, prompt_tokens
+from degusta_learn.prompting.costs import CHARS_PER_TOKEN, cost
 from degusta_learn.scene import Dataset
 
 PAPER_ANCHOR = ("paper anchor, GPT-4o, one 4-context experiment, n=5: 8,035 in + 6,250 out = 14,285 tokens, "
@@ -34,7 +36,6 @@ def output_tokens_per_sample(ds: Dataset, kind: str, grid, max_arrangements: int
 
 def estimate_run(run, episodes: list) -> dict[str, Any]:
     """Requests, samples (new and cached), tokens and USD of running `run` (a ZeroShotRun) on `episodes`."""
-    cfg = run.cfg
     cache = ResponseCache(run.cache_path, readonly=True) if run.cache_path else None
     est = {"episodes": len(episodes), "episodes_to_run": 0, "samples": 0, "cached": 0, "requests": 0, "input_tokens": 0,
            "output_tokens": 0, "output_tokens_per_sample": run.est_out}
@@ -43,7 +44,7 @@ def estimate_run(run, episodes: list) -> dict[str, Any]:
         prompt, keys = run.prompt(ep)
         hits = cache.get_many(keys) if cache else {}
         missing = len(keys) - len(hits)
-        tokens = prompt_tokens(prompt, cfg.backend.name, cfg.backend.detail) + run.schema_tokens
+        tokens = run.input_tokens(prompt)
         per_prompt.append(tokens)
         requests = missing if run.per_sample else int(missing > 0)
         est["episodes_to_run"] += int(missing > 0)

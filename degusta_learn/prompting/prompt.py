@@ -36,7 +36,7 @@ from degusta_learn.scene import Dataset, Episode
 if TYPE_CHECKING:
     from degusta_learn.render.grid import Grid
 
-PROMPT_METHODS = ("louma", "logma", "mouma", "mogma")
+from degusta_learn.names import PROMPT_METHODS  # noqa: E402  (re-exported: the four methods)
 IMAGE_FORMATS = {"jpeg": ("jpg", "image/jpeg"), "png": ("png", "image/png")}
 JPEG_QUALITY = 90
 
@@ -100,6 +100,9 @@ class Completion:
     text: str
     input_tokens: int | None = None
     output_tokens: int | None = None
+    decoding: dict | None = None
+    """What a local model's decoding did to this answer (`vlm.generate`: grammar, token budget); None when
+    unknown (remote APIs, answers read back from the response cache)."""
 
 
 def _check_method(method: str) -> None:

@@ -39,19 +39,18 @@ from tqdm import tqdm
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json, read_json, refuse_overwriting_inputs
 from degusta_learn.methods import MethodSpec, PredictConfig
-from degusta_learn.prompting.aggregate import aggregate
+from degusta_learn.render.grid import Grid
+from degusta_learn.prompting.aggregate import aggregate, decoding_diagnostics
 from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, read_answer
 from degusta_learn.prompting.backends.base import (
-    BackendConfig, BackendError, Completion, make_backend, redact, redact_json,
+    BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact, redact_json,
 )
-from degusta_learn.prompting.backends.openai import is_local
 from degusta_learn.prompting.cache import ResponseCache, sample_keys
-from degusta_learn.prompting.costs import CHARS_PER_TOKEN, BudgetExceeded, Ledger, cost, price
+from degusta_learn.prompting.costs import CHARS_PER_TOKEN, BudgetExceeded, Ledger, cost
 from degusta_learn.prompting.estimate import estimate_run, output_tokens_per_sample, print_estimate
 from degusta_learn.prompting.prompt import IMAGE_FORMATS, Prompt, build_prompt
 from degusta_learn.scene import Dataset, Episode, Prediction
 
-PER_SAMPLE_BACKENDS = ("anthropic", "gemini")  # one request per sample (no `n` in their APIs)
 LEDGER_MARK = "degusta zero-shot ledger"
 """The `kind` of every ledger.json the runner writes: only such a file (or one with the keys of ledgers written
 before the mark) is replaced by a later run."""
@@ -70,21 +69,11 @@ def is_degusta_ledger(path: Path) -> bool:
 
 
 @dataclass
-class GridSize:
-    """The labelled grid of grid methods (logma, mogma)."""
-
-    rows: int = 8
-    """Rows, numbered 1.. from the top."""
-    cols: int = 8
-    """Columns, lettered A.. from the left (at most 26)."""
-
-
-@dataclass
 class ZeroShotConfig(PredictConfig):
     """A zero-shot prompting run: the common predict keys plus backend, sampling and run control."""
 
-    backend: BackendConfig = field(default_factory=BackendConfig)
-    """Which VLM answers (see docs/prompting.md)."""
+    backend: BackendConfig = field(default_factory=backend_config)
+    """Which VLM answers: `name` picks the backend, whose own keys the section then takes (docs/prompting.md)."""
     n: int = 5
     """Sampled answers per episode, aggregated (the paper: 5)."""
     temperature: float = 1.0
@@ -97,7 +86,7 @@ class ZeroShotConfig(PredictConfig):
     """Side of the rendered images in pixels (more pixels: more image tokens)."""
     image_format: str = "jpeg"
     """jpeg or png (the names in the prompt follow: final_state_1.jpg / .png)."""
-    grid: GridSize = field(default_factory=GridSize)
+    grid: Grid = field(default_factory=Grid)
     """Grid of grid methods."""
     max_retries: int = 5
     """Retries of a request after a rate limit, server error or timeout (then its samples fail)."""
@@ -147,8 +136,10 @@ def _sanitize(got) -> list[Completion]:
         raise BackendError(f"the backend returned {type(got).__name__}, not a list of answers")
     out = []
     for c in got:
+        decoding = getattr(c, "decoding", None)  # what a local model's decoding did (vlm.generate)
         out.append(Completion(text=_text(getattr(c, "text", None)), input_tokens=_int(getattr(c, "input_tokens", None)),
-                              output_tokens=_int(getattr(c, "output_tokens", None))))
+                              output_tokens=_int(getattr(c, "output_tokens", None)),
+                              decoding=decoding if isinstance(decoding, dict) else None))
     return out
 
 
@@ -156,7 +147,6 @@ class ZeroShotRun:
     """One run's state: backend, cache, ledger and the stop flag shared by the worker threads."""
 
     def __init__(self, cfg: ZeroShotConfig, ds: Dataset):
-        from degusta_learn.render.grid import Grid
         from degusta_learn.render.lifting import Renderer
 
         self.cfg, self.ds = cfg, ds
@@ -165,10 +155,11 @@ class ZeroShotRun:
         self.renderer = Renderer.for_dataset(ds, size=cfg.image_size)
         self.out = Path(cfg.out)
         self.cache_path = None if cfg.cache == "off" else Path(cfg.cache or self.out.parent / "responses_cache.sqlite")
-        local = cfg.backend.name in ("hf", "replay") or is_local(cfg.backend.base_url)
-        # A local model (hf, replay, a loopback server) costs nothing unless priced explicitly.
-        self.price = None if local and cfg.backend.model not in cfg.prices else price(cfg.backend.model, cfg.prices)
-        self.per_sample = cfg.backend.name in PER_SAMPLE_BACKENDS
+        # What the backend is, asked of its class (nothing is built, no model loaded, until `run`).
+        self.backend_cls = backend_class(cfg.backend.name)
+        self.price = self.backend_cls.price(cfg.backend, cfg.prices)  # None: a local backend, not priced
+        self.per_sample = self.backend_cls.per_sample
+        self.cacheable = self.backend_cls.cacheable
         self.est_out = cfg.est_output_tokens or output_tokens_per_sample(ds, self.kind, self.grid)
         # structured outputs: the schema the backend sends (it builds the same one from grid + catalog)
         self.schema = answer_schema(self.kind, ds.catalog, self.grid) if cfg.backend.structured_output else None
@@ -191,6 +182,10 @@ class ZeroShotRun:
                                "ledger keys); the zero-shot run writes its ledger.json beside `out`, so it is "
                                "left untouched and nothing was run: choose another `out` folder or move it")
 
+    def input_tokens(self, prompt: Prompt) -> int:
+        """Estimated input tokens of one request carrying `prompt` (with the answer schema it sends)."""
+        return self.backend_cls.input_tokens(prompt, self.cfg.backend) + self.schema_tokens
+
     def prompt(self, ep: Episode) -> tuple[Prompt, list[str]]:
         c = self.cfg
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
@@ -211,11 +206,8 @@ class ZeroShotRun:
         The answers are committed to the cache under `keys` the moment they are received, before the
         ledger, parsing or aggregation touch them (the smallest window a kill can lose a paid answer in).
         """
-        from degusta_learn.prompting.costs import prompt_tokens
-
         c = self.cfg
-        est_in = (prompt_tokens(prompt, c.backend.name, c.backend.detail) + self.schema_tokens) * (
-            k if self.per_sample else 1)
+        est_in = self.input_tokens(prompt) * (k if self.per_sample else 1)
         est_out = self.est_out * k
         est_usd = cost(self.price, est_in, est_out)
         for attempt in range(c.max_retries + 1):
@@ -289,7 +281,7 @@ class ZeroShotRun:
             for i, comp in zip(ask, got):
                 samples[i] = comp
             missing = [i for i in missing if samples[i] is None]
-            if not self.cacheable:  # replay: one look-up, whatever is missing stays missing
+            if not self.cacheable:  # e.g. replay: one look-up, whatever is missing stays missing
                 for i in missing:
                     reasons[i] = "no recorded answer"
                 break
@@ -318,6 +310,9 @@ class ZeroShotRun:
                 "cached": cached, "responses": [s.text if s else None for s in samples],
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
                 "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors, **agg}
+        decoding = decoding_diagnostics(samples, self.kind, self.ds.catalog, self.grid)  # local models only
+        if decoding:
+            diag["decoding"] = {"max_new_tokens": self.cfg.backend.max_tokens, **decoding}
         return Prediction(episode=ep.id, participant=ep.participant, target=ep.target, method=self.cfg.method,
                           placements=placements, failed=agg["failed"], diagnostics=redact_json(diag))
 
@@ -326,7 +321,10 @@ class ZeroShotRun:
     def run(self, episodes: list[Episode]) -> list[Prediction]:
         c = self.cfg
         self.backend = make_backend(c.backend, self.grid, self.ds.catalog)
-        self.cacheable = getattr(self.backend, "cacheable", True)
+        if hasattr(self.backend, "check_run"):  # hf: no train/test leakage, the render size it was trained at
+            self.backend.check_run(self.ds, episodes, c.image_size)
+        if c.backend.max_tokens == "auto":  # hf: what the dataset's answers take with the model's tokenizer
+            c.backend.max_tokens = self.backend.token_budget(self.ds, c.method)["max_new_tokens"]
         self.cache = ResponseCache(self.cache_path) if self.cache_path and self.cacheable else None
         self.ledger = Ledger(self.price, c.budget_usd)
         results: dict[str, Prediction] = {}
@@ -424,7 +422,8 @@ class ZeroShotRun:
         summary = self.ledger.summary()
         diags = [p.diagnostics for p in results.values()]
         atomic_write_json(self.ledger_path, redact_json({
-            "kind": LEDGER_MARK, "method": c.method, "backend": c.backend.name, "model": c.backend.model, "base_url": c.backend.base_url,
+            "kind": LEDGER_MARK, "method": c.method, "backend": c.backend.name, "model": c.backend.model,
+            "base_url": getattr(c.backend, "base_url", None),  # null: a backend that calls no server (hf, replay)
             "structured_output": c.backend.structured_output,
             "n": c.n, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),

@@ -11,9 +11,12 @@ fork covers the cells its tines and handle cover, a cup includes its handle. An 
 picture (`image` entries) uses its full footprint rectangle. Points outside the image are ignored; the
 centroid's cell is always included. Normalized units are treated as isotropic (square table images).
 
-Decoding is the mean of the listed cell centres (over several responses: the mean over every listed
-centre, so a cell named by more responses weighs more). `quantization_rmsd` measures the round trip
-position -> cells -> position over a dataset: the floor under every grid method's RMSD.
+Decoding is the mean of the listed cell centres. Over several responses (`decode_weighted`) it is the
+mean of the responses' own decoded centres, so each response weighs the same however many cells it lists
+(the paper: "we average the centroids of the responses"); a cell named by more responses still pulls
+harder. `quantization_rmsd` measures the round trip position -> cells -> position over a dataset: the
+floor under every grid method's RMSD. `max_cells` bounds how many cells an object of a given footprint
+can cover anywhere on the grid (the answer grammar's per-type limit).
 
 Example:
     from degusta_learn.render.grid import Grid, rotation_to_direction
@@ -24,12 +27,14 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass
 
 import numpy as np
 
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.render.shapes import footprint_points
 from degusta_learn.scene import CatalogObject, Dataset, object_size
@@ -40,11 +45,12 @@ _CELL = re.compile(r"^([A-Z])\s*(\d+)$")
 
 @dataclass(frozen=True)
 class Grid:
-    """A rows x cols grid over the table image; cell ids like "C7" (column letter, row number)."""
+    """A rows x cols grid over the table image; cell ids like "C7" (column letter, row number). Also the
+    `grid:` section of every config that has one (predict configs, `data.grid` of fine-tune and pretrain)."""
 
-    rows: int = 8
+    rows: int = bounded(8, 1, 99)
     """Number of rows (numbered 1.. from the top)."""
-    cols: int = 8
+    cols: int = bounded(8, 1, 26)
     """Number of columns (lettered A.. from the left; at most 26)."""
 
     def __post_init__(self):
@@ -106,8 +112,12 @@ class Grid:
         return float(centres[:, 0].mean()), float(centres[:, 1].mean())
 
     def decode_weighted(self, cell_lists: list[list[str]]) -> tuple[float, float]:
-        """Mean of every listed centre over several responses (cells named more often weigh more)."""
-        return self.decode([c for cells in cell_lists for c in cells])
+        """Mean over responses of each response's decoded centre: every response weighs the same, whatever
+        the number of cells it lists. DegustaError on no responses, an empty response or a bad id."""
+        if not cell_lists:
+            raise DegustaError("cannot decode an empty list of responses")
+        centres = np.array([self.decode(cells) for cells in cell_lists])
+        return float(centres[:, 0].mean()), float(centres[:, 1].mean())
 
 
 def as_grid(grid: Grid | int | None) -> Grid | None:
@@ -124,6 +134,39 @@ def rotate(points: np.ndarray, degrees: float) -> np.ndarray:
     t = math.radians(degrees)
     c, s = math.cos(t), math.sin(t)
     return points @ np.array([[c, s], [-s, c]])  # x' = c x - s y, y' = s x + c y
+
+
+@functools.lru_cache(maxsize=256)
+def max_cells(width: float, length: float, rows: int = 8, cols: int = 8, offsets: int = 16,
+              step_deg: float = 0.5) -> int:
+    """The most cells `Grid(rows, cols).encode` can list for an object of footprint `width` x `length`,
+    at any position and rotation: a guaranteed upper bound, usually exact.
+
+    `encode` lists cells that points of the footprint fall in, and every such point lies in the footprint
+    rectangle; so the count is at most the number of cells the rotated rectangle intersects. That number is
+    counted exactly (separating axis test, rectangle against each cell) at every `step_deg` of rotation in
+    [0, 90] (a rectangle's symmetries and the grid's mirror symmetry cover the rest) and at an
+    `offsets` x `offsets` lattice of centre positions within one cell, with the rectangle grown on every
+    side by the farthest any point of it can move between lattice placements (half a lattice diagonal plus
+    half a rotation step along the half diagonal). Every placement lies within that reach of a lattice
+    placement, so its cells are among the grown rectangle's there.
+    """
+    cw, ch = 1.0 / cols, 1.0 / rows
+    reach = 0.5 * math.hypot(cw, ch) / offsets + 0.5 * math.hypot(width, length) * math.radians(step_deg) / 2
+    a, b = width / 2 + reach, length / 2 + reach  # half sizes across / along the object's long axis
+    kc, kr = math.ceil(math.hypot(a, b) / cw) + 1, math.ceil(math.hypot(a, b) / ch) + 1
+    frac = (np.arange(offsets) + 0.5) / offsets
+    dx = (np.arange(-kc, kc + 1)[None, :] + 0.5) * cw - frac[:, None] * cw  # (O, C) cell centre - object centre
+    dy = (np.arange(-kr, kr + 1)[None, :] + 0.5) * ch - frac[:, None] * ch  # (O, R)
+    dx, dy = dx[:, None, :, None], dy[None, :, None, :]  # (O, 1, C, 1), (1, O, 1, R)
+    best = 0
+    for t in np.radians(np.arange(0.0, 90.0 + step_deg / 2, step_deg)):
+        c, s = abs(math.cos(t)), abs(math.sin(t))  # width axis (c, s), length axis (-s, c); t in [0, 90]
+        hit = (np.abs(dx) <= cw / 2 + a * c + b * s) & (np.abs(dy) <= ch / 2 + a * s + b * c)
+        hit &= np.abs(dx * c + dy * s) <= a + cw / 2 * c + ch / 2 * s
+        hit &= np.abs(dy * c - dx * s) <= b + cw / 2 * s + ch / 2 * c
+        best = max(best, int(hit.sum(axis=(2, 3)).max()))
+    return min(best, rows * cols)
 
 
 def rotation_to_direction(deg: float) -> str:

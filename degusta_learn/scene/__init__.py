@@ -12,9 +12,8 @@ from degusta_learn.scene.catalog import (
     object_size,
 )
 from degusta_learn.scene.dataset import Dataset, load_dataset, parse_placements, save_dataset, validate_dataset
+from degusta_learn.names import CONTEXT_LENGTHS, SPLITS
 from degusta_learn.scene.episodes import (
-    CONTEXT_LENGTHS,
-    SPLITS,
     make_episodes,
     participants_in,
     read_episodes,

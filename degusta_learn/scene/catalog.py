@@ -36,6 +36,10 @@ TYPE_SIZE = {
 
 # The discrete features that matching compares (Hamming distance), in this order.
 MATCH_FEATURES = ("type", "color1", "color2", "material1", "material2", "shape", "pattern")
+# Feature pairs compared as unordered pairs (the paper's multi-label colours and materials): a red/blue
+# object and a blue/red one have the same colours. Both features of a pair share one code space.
+UNORDERED_PAIRS = (("color1", "color2"), ("material1", "material2"))
+_CODE_SPACE = {second: first for first, second in UNORDERED_PAIRS}
 
 # Per-type vocabulary of the default catalog: materials that make sense and the shapes on offer.
 _TYPE_MATERIALS = {
@@ -108,7 +112,7 @@ class Catalog:
         object.__setattr__(self, "_by_id", by_id)
         # Integer codes of MATCH_FEATURES, one row per object; rows addressed through _row[id].
         codes = {}
-        feats = np.array([[codes.setdefault((f, getattr(o, f)), len(codes)) for f in MATCH_FEATURES]
+        feats = np.array([[codes.setdefault((_CODE_SPACE.get(f, f), getattr(o, f)), len(codes)) for f in MATCH_FEATURES]
                           for o in self.objects], dtype=np.int32).reshape(len(self.objects), len(MATCH_FEATURES))
         # Rows by id: a dense id -> row table when ids are compact (the usual 0..124), else a sorted-id
         # search, so that a large id never sizes an allocation (an id of 1e11 once asked for 745 GiB).
@@ -149,7 +153,8 @@ class Catalog:
         return [o for o in self.objects if o.type == type_]
 
     def features(self, ids) -> np.ndarray:
-        """Integer feature codes (len(ids), len(MATCH_FEATURES)) for Hamming-distance matching."""
+        """Integer feature codes (len(ids), len(MATCH_FEATURES)) for Hamming-distance matching (the two
+        features of an UNORDERED_PAIRS pair share codes: `metrics.matching.hamming` compares them as pairs)."""
         ids = np.asarray(ids, dtype=np.int64)
         if self._row is not None and (ids.size == 0 or (ids.min() >= 0 and ids.max() < len(self._row))):
             rows = self._row[ids]

@@ -17,11 +17,14 @@ materials from the vocabulary; table surfaces that are real polygons (>= 3 disti
 >= MIN_SURFACE_AREA); pictures and named files that stay inside the dataset folder (no '..', no
 absolute paths, no symbolic links out) and, for PNG, at most MAX_IMAGE_PIXELS pixels. An optional file
 that is present but unreadable (a symlink loop, a folder) is an error, never skipped.
-It never writes into the folder. `save_dataset` writes every file atomically.
+It never writes into the folder. `save_dataset` writes every file atomically; `dataset_identity` is its
+fingerprint (what a fine-tuned adapter records it was trained on).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -30,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json, atomic_write_jsonl, read_json, read_jsonl
+from degusta_learn.fileio import atomic_write_json, atomic_write_jsonl, file_sha256, read_json, read_jsonl, stat_tree
 from degusta_learn.scene.catalog import COLORS, MATERIALS, TYPES, Catalog, CatalogObject
 from degusta_learn.scene.tables import Table
 from degusta_learn.scene.types import Arrangement, Placement, Rating
@@ -104,6 +107,25 @@ def load_dataset(root: str | Path) -> Dataset:
     if _present(root / "ratings.jsonl"):
         ratings = _parse_ratings(read_jsonl(root / "ratings.jsonl"), root / "ratings.jsonl")
     return Dataset(catalog, tables, arrangements, ratings, meta, root)
+
+
+def dataset_identity(ds: Dataset) -> str:
+    """The dataset fingerprint (SHA-256 hex): of the bytes of the folder's top-level files and the size and
+    time of the files in its subfolders (pictures), or, for a dataset never saved (`root` None), of its
+    arrangements. Compare's staleness records and the fine-tuning record (`vlm/record.py`) use it."""
+    if ds.root is None:
+        return _sha([a.to_json() for a in ds.arrangements])
+    parts = []
+    for p in sorted(Path(ds.root).iterdir()):
+        if p.is_file():
+            parts.append([p.name, file_sha256(p)])
+        elif p.is_dir():
+            parts.append([p.name, stat_tree(p)])
+    return _sha(parts)
+
+
+def _sha(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def validate_dataset(ds: Dataset) -> Dataset:

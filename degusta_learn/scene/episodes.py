@@ -19,14 +19,13 @@ import numpy as np
 
 from degusta_learn.config import check_seed
 from degusta_learn.errors import DegustaError
+from degusta_learn.names import SPLITS
 from degusta_learn.fileio import atomic_write_jsonl, check_output_file, read_jsonl
 from degusta_learn.scene.dataset import Dataset
 from degusta_learn.scene.types import TASKS, Episode
 from degusta_learn.scene.validate import MAX_TRIAL, Where, get, require_mapping
 
-SPLITS = ("train", "val", "test", "all")
 SPLIT_FRACTIONS = {"train": 0.7, "val": 0.1, "test": 0.2}
-CONTEXT_LENGTHS = (0, 2, 4)
 
 
 def split_participants(participants: list[str], seed: int = 0) -> dict[str, list[str]]:

@@ -15,20 +15,21 @@ task intact:
   objects. It stops the model from recognising a training participant by their objects and recalling
   their target, and teaches it to take the objects from the context instead.
 
-Validation episodes are the val participants' episodes at each of `val_context_lengths` (exactly as
+Validation episodes are the val participants' episodes at each of `data.val_contexts` (exactly as
 `make_episodes` builds them for `degusta predict`), unaugmented.
 
 Samples are made by `encode(context, target_table_id, target)` (the slot encoding, slots.py) and batched
 by `slots.collate_slots`.
 
 Usage:
-    dm = ArrangementDataModule(DataConfig(dataset="data/naturalistic"), ds, encode)
+    dm = ArrangementDataModule(DataConfig(), ds, encode, seed=0, where="data/naturalistic")
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import lightning as L
 import numpy as np
@@ -36,7 +37,7 @@ from torch.utils.data import DataLoader, Dataset as TorchDataset
 
 from degusta_learn.baselines.learned.features import onto_surface
 from degusta_learn.baselines.learned.slots import collate_slots
-from degusta_learn.config import bounded, seed_field
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import CONTEXT_LENGTHS, Arrangement, Dataset, Episode, Placement, make_episodes
 from degusta_learn.scene.episodes import split_participants
@@ -46,13 +47,13 @@ from degusta_learn.scene.episodes import split_participants
 class DataConfig:
     """The `data:` section of a learned train config."""
 
-    dataset: str = "data/naturalistic"
-    """Dataset folder (`degusta data generate naturalistic --out data/naturalistic`)."""
-    split_seed: int = seed_field()
-    """Seed of the participant split; use the same `seed` in predict configs so test stays unseen."""
-    context_lengths: list[int] = field(default_factory=lambda: [0, 2, 4])
+    RENAMED: ClassVar[dict[str, str]] = {"dataset": "dataset", "split_seed": "seed",
+                                         "context_lengths": "data.contexts", "val_context_lengths": "data.val_contexts"}
+    """Old spellings (before one spelling per concept) -> the key that replaced them."""
+
+    contexts: list[int] = field(default_factory=lambda: list(CONTEXT_LENGTHS))
     """Context lengths mixed during training (one model for all)."""
-    val_context_lengths: list[int] = field(default_factory=lambda: [0, 2, 4])
+    val_contexts: list[int] = field(default_factory=lambda: list(CONTEXT_LENGTHS))
     """Context lengths of the validation episodes."""
     batch_size: int = bounded(32, 1, 65_536)
     """Episodes per batch (per device)."""
@@ -68,7 +69,7 @@ class DataConfig:
     """Probability, per episode, of relabelling objects within each type (see the module docstring)."""
 
     def __post_init__(self):
-        for key in ("context_lengths", "val_context_lengths"):
+        for key in ("contexts", "val_contexts"):
             bad = [k for k in getattr(self, key) if k not in CONTEXT_LENGTHS]
             if bad or not getattr(self, key):
                 raise DegustaError(f"data.{key}: expected a non-empty list drawn from {list(CONTEXT_LENGTHS)}, "
@@ -131,7 +132,7 @@ class TrainEpisodes(TorchDataset):
         by_p = ds.by_participant()
         self.trials = {p: by_p[p] for p in participants}
         self.items = [(p, t, k) for p in participants for t in range(len(by_p[p]))
-                      for k in cfg.context_lengths if k < len(by_p[p])] * cfg.repeats
+                      for k in cfg.contexts if k < len(by_p[p])] * cfg.repeats
         self.table_ids = sorted(ds.tables)
 
     def __len__(self) -> int:
@@ -174,19 +175,20 @@ class ValEpisodes(TorchDataset):
 
 
 class ArrangementDataModule(L.LightningDataModule):
-    """Train / val loaders over a loaded dataset (the split is by participant, `cfg.split_seed`)."""
+    """Train / val loaders over a loaded dataset (the split is by participant, seeded by `seed`; `where`
+    names the dataset in errors)."""
 
-    def __init__(self, cfg: DataConfig, ds: Dataset, encode: Encoder):
+    def __init__(self, cfg: DataConfig, ds: Dataset, encode: Encoder, seed: int, where: str):
         super().__init__()
         self.cfg, self.ds = cfg, ds
-        split = split_of(ds, cfg.split_seed, cfg.dataset)
+        split = split_of(ds, seed, where)
         self.train_participants = split["train"]
-        self.val_episodes = [e for k in cfg.val_context_lengths for e in make_episodes(ds, k, "val", cfg.split_seed)]
+        self.val_episodes = [e for k in cfg.val_contexts for e in make_episodes(ds, k, "val", seed)]
         self.train_set = TrainEpisodes(ds, self.train_participants, cfg, encode)
         self.val_set = ValEpisodes(ds, self.val_episodes, encode)
         if not len(self.train_set):
-            raise DegustaError(f"{cfg.dataset}: no training episodes (train participants need more trials "
-                               f"than the context lengths {cfg.context_lengths})")
+            raise DegustaError(f"{where}: no training episodes (train participants need more trials "
+                               f"than the context lengths {cfg.contexts})")
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(self.train_set, batch_size=self.cfg.batch_size, shuffle=True, collate_fn=collate_slots,

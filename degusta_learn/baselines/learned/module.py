@@ -14,27 +14,26 @@ with `torch.load(..., weights_only=True)` and a checkpoint of another model kind
 recognized (see predict.py).
 
 Usage:
-    module = LearnedModule(model=asdict(ModelConfig()), optim=asdict(OptimConfig()), vocab=vocab.to_dict(),
+    module = LearnedModule(model=asdict(ModelConfig()), optim=asdict(LEARNED_OPTIM), vocab=vocab.to_dict(),
                            population=population_pairs(population_rows(ds)))
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import lightning as L
 import torch
 
 from degusta_learn.baselines.learned.features import Vocab, onto_surface
 from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
-from degusta_learn.config import bounded
-from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import score_prediction
+from degusta_learn.optim import OptimConfig, lr_schedule
 from degusta_learn.scene import Placement
 from degusta_learn.trainer import gather_unique_rows
 
 KIND = "learned"
+LEARNED_OPTIM = OptimConfig(lr=1e-3, weight_decay=0.01, warmup_steps=100)  # the learned model's defaults
 FORMAT = 2  # 1: the autoregressive token model (before the slot model); refused by predict.load_model
 
 
@@ -43,35 +42,15 @@ def population_pairs(population: dict) -> list:
     return [[int(t), rows] for t, rows in sorted(population.items())]
 
 
-@dataclass
-class OptimConfig:
-    """The `optim:` section: AdamW with linear warmup and cosine decay to `min_lr_ratio * lr`."""
-
-    lr: float = 1e-3
-    """Peak learning rate."""
-    weight_decay: float = 0.01
-    """AdamW weight decay (not applied to embeddings, norms and biases)."""
-    warmup_steps: int = bounded(100, 0, 1_000_000_000)
-    """Linear warmup steps."""
-    min_lr_ratio: float = 0.05
-    """Final learning rate as a fraction of lr (cosine schedule over the whole run)."""
-
-    def __post_init__(self):
-        if self.lr <= 0:
-            raise DegustaError(f"optim.lr: expected > 0, got {self.lr}")
-        if not 0 <= self.min_lr_ratio <= 1:
-            raise DegustaError(f"optim.min_lr_ratio: expected in [0, 1], got {self.min_lr_ratio}")
-
-
 LOSS_TERMS = ("set", "object", "position", "rotation", "step")  # SlotModel.loss terms besides "loss"
 VAL_METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "acceptable_0.05", "acceptable_0.10")
 
 
-def monitor_keys(val_context_lengths) -> set[str]:
+def monitor_keys(val_contexts) -> set[str]:
     """Every metric LearnedModule logs (what `trainer.monitor` may name), for these validation lengths."""
     keys = {"loss", "train/loss", "val/loss"} | {f"train/{t}" for t in LOSS_TERMS} | {f"val/loss_{t}" for t in LOSS_TERMS}
     keys |= {f"val/{m}" for m in VAL_METRICS}
-    keys |= {f"val/{m}_k{k}" for m in ("object_accuracy", "rmsd") for k in val_context_lengths}
+    keys |= {f"val/{m}_k{k}" for m in ("object_accuracy", "rmsd") for k in val_contexts}
     return keys
 
 
@@ -113,7 +92,7 @@ class LearnedModule(L.LightningModule):
                                            ok and s.rmsd <= 0.05, ok and s.rmsd <= 0.10], dtype=torch.float64))
 
     def on_validation_epoch_end(self) -> None:
-        ks = sorted(set(self.trainer.datamodule.cfg.val_context_lengths))
+        ks = sorted(set(self.trainer.datamodule.cfg.val_contexts))
         rows = torch.stack(self._val) if self._val else torch.zeros(0, 10, dtype=torch.float64)
         rows = gather_unique_rows(self, rows)[:, 1:]  # every rank's episodes, each once (DDP pads the shares)
         # per context length: sums of [n, acc, rmsd, n_rmsd, rmsd_unreg, count_error, acc@.05, acc@.10]
@@ -141,14 +120,4 @@ class LearnedModule(L.LightningModule):
                 (no_decay if plain else decay).append(p)
         opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
                                  {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr)
-        total = max(1, int(self.trainer.estimated_stepping_batches))
-        warm, floor = min(cfg.warmup_steps, total // 2), cfg.min_lr_ratio
-
-        def factor(step: int) -> float:
-            if step < warm:
-                return (step + 1) / warm
-            t = min(1.0, (step - warm) / max(1, total - warm))
-            return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t))
-
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+        return {"optimizer": opt, "lr_scheduler": lr_schedule(opt, cfg, self.trainer.estimated_stepping_batches)}

@@ -11,18 +11,19 @@ Usage:
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
 
 from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig, split_of
 from degusta_learn.baselines.learned.features import Vocab
-from degusta_learn.baselines.learned.module import KIND, LearnedModule, OptimConfig, monitor_keys, population_pairs
+from degusta_learn.baselines.learned.module import KIND, LEARNED_OPTIM, LearnedModule, monitor_keys, population_pairs
 from degusta_learn.baselines.learned.slot_model import ModelConfig
 from degusta_learn.baselines.learned.slots import SlotEncoder, population_rows
-from degusta_learn.config import bounded
+from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
+from degusta_learn.optim import OptimConfig
 from degusta_learn.scene import Dataset, load_dataset
 from degusta_learn.trainer import TrainerConfig, fit, training_run
 
@@ -33,9 +34,14 @@ class LearnedTrainConfig:
 
     kind: str = KIND
     """Trainer kind (TRAINERS name); must be "learned"."""
+    dataset: str = "data/naturalistic"
+    """Dataset folder (`degusta data generate naturalistic --out data/naturalistic`)."""
+    seed: int = seed_field()
+    """Seed of the participant split; use the same `seed` in predict configs so test stays unseen."""
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
+    optim: OptimConfig = field(default_factory=lambda: replace(LEARNED_OPTIM))
+    """AdamW and its schedule (degusta_learn/optim.py, shared by every trainer)."""
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(run_name="learned"))
     num_threads: int | None = bounded(2, 1, 4096)
     """CPU threads torch may use (null: torch's default; keep small on shared machines)."""
@@ -46,12 +52,13 @@ class LearnedTrainConfig:
 
 
 def build(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> tuple[LearnedModule, ArrangementDataModule]:
-    """The LightningModule and DataModule of `cfg` (loads `cfg.data.dataset` unless `ds` is given)."""
-    ds = ds if ds is not None else load_dataset(cfg.data.dataset)
+    """The LightningModule and DataModule of `cfg` (loads `cfg.dataset` unless `ds` is given)."""
+    ds = ds if ds is not None else load_dataset(cfg.dataset)
     vocab = Vocab.from_dataset(ds)
-    split_of(ds, cfg.data.split_seed, cfg.data.dataset)  # a clear error before the population needs a split
-    population = population_rows(ds, cfg.data.split_seed)
-    dm = ArrangementDataModule(cfg.data, ds, SlotEncoder(vocab, ds.tables, population, cfg.model.max_objects))
+    split_of(ds, cfg.seed, cfg.dataset)  # a clear error before the population needs a split
+    population = population_rows(ds, cfg.seed)
+    dm = ArrangementDataModule(cfg.data, ds, SlotEncoder(vocab, ds.tables, population, cfg.model.max_objects),
+                              seed=cfg.seed, where=cfg.dataset)
     module = LearnedModule(model=asdict(cfg.model), optim=asdict(cfg.optim), vocab=vocab.to_dict(),
                            population=population_pairs(population), min_objects=int(ds.meta.get("min_objects", 3)))
     return module, dm
@@ -69,11 +76,11 @@ def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> No
     from degusta_learn.dryrun import dry_run_trainer_lines, estimate_memory, print_dry_run, transformer_activations
     from degusta_learn.trainer import world_size
 
-    ds = ds if ds is not None else load_dataset(cfg.data.dataset)
+    ds = ds if ds is not None else load_dataset(cfg.dataset)
     most = max(ds.arrangements, key=lambda a: len(a.placements), default=None)
     if most is not None and len(most.placements) > cfg.model.max_objects:
         raise DegustaError(f"model.max_objects: {cfg.model.max_objects}, but participant {most.participant!r} trial "
-                           f"{most.trial} of {cfg.data.dataset} has {len(most.placements)} objects; raise it to at "
+                           f"{most.trial} of {cfg.dataset} has {len(most.placements)} objects; raise it to at "
                            f"least {len(most.placements)}")
     module, dm = build(cfg, ds)
     total = sum(p.numel() for p in module.parameters())
@@ -99,7 +106,7 @@ def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> No
                                    f"{max(val_slots, default=0)} over {len(val_slots)} episodes"),
              ("objects per target", f"max {max(objects)} / mean {sum(objects) / len(objects):.1f} of model.max_objects "
                                     f"{m.max_objects} ({max(objects) / m.max_objects:.0%} used)")]
-    lines += dry_run_trainer_lines(cfg.trainer, monitor_keys(cfg.data.val_context_lengths), len(dm.train_set), B)
+    lines += dry_run_trainer_lines(cfg.trainer, monitor_keys(cfg.data.val_contexts), len(dm.train_set), B)
     lines.append(("predicted memory", mem.describe()))
     print_dry_run("dry run of kind learned: nothing trained or written", lines, log)
 
@@ -108,7 +115,7 @@ def train(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> Path:
     """TrainerSpec.run of kind `learned`: train and return the run folder (seeded before the model is built)."""
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
-    monitors = monitor_keys(cfg.data.val_context_lengths)
+    monitors = monitor_keys(cfg.data.val_contexts)
     with training_run(cfg.trainer, monitors):
         module, dm = build(cfg, ds)
         return fit(module, dm, cfg.trainer, full_config=cfg, monitors=monitors)

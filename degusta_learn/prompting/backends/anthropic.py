@@ -9,8 +9,12 @@ forced to call (`tools=[{"name": "degusta_answer", "description", "input_schema"
 `tool_choice={"type": "tool", "name": "degusta_answer"}`); the answer is that tool_use block's `input`,
 kept as JSON text. A reply without the tool call (a proxy that drops tools) is read from its text.
 
+What it is: one request per sample; a paid service priced by model name (a `base_url` on this machine,
+a proxy, is not priced unless `prices` names the model); images counted by Anthropic's rule
+(width x height / 750, after fitting the long side in 1568 px).
+
 Example:
-    backend = AnthropicBackend.from_config(BackendConfig(name="anthropic", model="claude-3-haiku-20240307"))
+    backend = AnthropicBackend.from_config(AnthropicConfig(model="claude-3-haiku-20240307"))
 """
 
 from __future__ import annotations
@@ -18,12 +22,21 @@ from __future__ import annotations
 import base64
 import contextlib
 import json
+import math
+from dataclasses import dataclass
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.answers import STRUCTURED_KEY, STRUCTURED_NAME
-from degusta_learn.prompting.backends.base import AnswerSchemas, BackendConfig, BackendError, Completion, api_key
-from degusta_learn.prompting.backends.openai import retry_after
+from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.remote import RemoteConfig, is_loopback, retry_after
 from degusta_learn.prompting.prompt import ImagePart, Prompt
+
+
+@dataclass
+class AnthropicConfig(RemoteConfig):
+    """The `backend:` keys of the anthropic backend."""
+
+    name: str = "anthropic"
 
 
 def _import():
@@ -35,18 +48,32 @@ def _import():
     return anthropic
 
 
-class AnthropicBackend:
+class AnthropicBackend(Backend):
     """Claude via the Messages API; n separate requests."""
 
     name = "anthropic"
+    config_class = AnthropicConfig
+    per_sample = True  # the Messages API has no `n`
+    cacheable = True
+    takes_schema = True  # a forced tool whose input schema is the answer's
+    key_env = "ANTHROPIC_API_KEY"
+
+    @classmethod
+    def is_local(cls, cfg: AnthropicConfig) -> bool:
+        return is_loopback(cfg.base_url)  # a proxy on this machine: not priced unless `prices` names the model
+
+    @classmethod
+    def image_tokens(cls, width: int, height: int, cfg: AnthropicConfig) -> int:
+        scale = min(1.0, 1568 / max(width, height))
+        return math.ceil(width * scale * height * scale / 750)
 
     def __init__(self, model: str, client, schemas: AnswerSchemas | None = None):
         self.model, self.client = model, client
         self.schemas = schemas  # set: structured outputs (a forced tool whose input schema is the answer's)
 
     @classmethod
-    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> AnthropicBackend:
-        key = api_key(cfg)
+    def from_config(cls, cfg: AnthropicConfig, grid=None, catalog=None) -> AnthropicBackend:
+        key = api_key(cfg.api_key_env or cls.key_env)
         anthropic = _import()
         client = anthropic.Anthropic(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
         return cls(cfg.model, client, AnswerSchemas(grid, catalog) if cfg.structured_output else None)

@@ -1,30 +1,39 @@
-"""The backend protocol: a VLM that turns a `Prompt` into n sampled completions.
+"""What a backend is: the base class that declares its capabilities, the config keys every backend
+takes, and the registry that finds a backend by name.
 
-Backends are small classes, one file each, registered by name in `BACKENDS` ("module:Class") and built
-with `make_backend(cfg, grid, catalog)` (each class has `from_config(cfg, grid, catalog)`; only the hf
-backend uses grid + catalog, for constrained decoding). They do no retrying and no caching: the runner
-does both. A failed request raises `BackendError`; `retryable=True` (rate limits, server errors,
+A backend is one file: a `Backend` subclass and its config dataclass (a `BackendConfig` subclass with its
+own keys), registered by name in `BACKENDS` ("module:Class", imported on first use). The class says what
+the backend is, and the runner and the cost estimator ask it, never its name, without building one (so a
+dry run loads no model): `per_sample` (one request per sample, or n in one), `cacheable`, `takes_schema`
+(structured outputs), `key_env`, `is_local(cfg)` (local backends cost nothing), `image_tokens` and
+`price` (what a request costs). `make_backend(cfg, grid, catalog)` builds one (`from_config`; only the hf
+backend uses grid + catalog, for constrained decoding). Backends do no retrying and no caching: the
+runner does both. A failed request raises `BackendError`; `retryable=True` (rate limits, server errors,
 timeouts, dropped connections) makes the runner back off and retry, `fatal=True` (bad key, unknown
 model) stops the run, anything else is recorded as a failure of that episode's samples.
 
-API keys are read only from the environment variable named by `api_key_env`, and `redact` scrubs them
-(and any echoed Authorization / api-key header value) from every message a backend raises and from
-everything the prompting package writes.
+A `backend:` config section is read into the config class of the backend it names
+(`BackendConfig.section_class`), so a key of another backend is refused in one line naming it.
+API keys are read only from the environment variable named by `api_key_env` (default: the backend's
+`key_env`), and `redact` scrubs them (and any echoed Authorization / api-key header value) from every
+message a backend raises and from everything the prompting package writes.
 
 Example:
-    backend = make_backend(BackendConfig(name="openai", model="gpt-4o"), grid, ds.catalog)
+    backend = make_backend(backend_config("openai", model="gpt-4o"), grid, ds.catalog)
     completions = backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import re
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, ClassVar
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.prompting import costs
 from degusta_learn.prompting.prompt import Completion, Prompt
 
 BACKENDS: dict[str, str] = {
@@ -34,76 +43,156 @@ BACKENDS: dict[str, str] = {
     "hf": "degusta_learn.prompting.backends.hf:HFBackend",
     "replay": "degusta_learn.prompting.backends.replay:ReplayBackend",
 }
-STRUCTURED_BACKENDS = ("openai", "anthropic", "gemini", "replay")
-"""Backends that take `structured_output: true` (replay ignores it: recorded answers of both kinds parse)."""
-DEFAULT_KEY_ENV = {"openai": "OPENAI_API_KEY", "anthropic": "ANTHROPIC_API_KEY", "gemini": "GEMINI_API_KEY"}
+DEFAULT_BACKEND = "openai"
+"""The backend of a `backend:` section without `name`."""
+
+# The response cache keys every answer by these backend keys (cache.sample_keys). They were once the keys
+# of one flat config shared by every backend: a backend without one of them keys it at that config's
+# default, so caches made before the per-backend configs stay valid.
+KEYED_DEFAULTS: dict[str, Any] = {"base_url": None, "detail": None, "adapter": None, "constrained": False,
+                                  "dtype": "auto", "image_size": None, "path": None}
 
 
-@runtime_checkable
-class Backend(Protocol):
-    name: str
-    model: str
+def backend_class(name: Any, key: str = "backend.name") -> type[Backend]:
+    """The class registered as `name` (imports its module; nothing is built)."""
+    if not isinstance(name, str):
+        raise DegustaError(f"{key}: expected the name of a backend (one of {', '.join(BACKENDS)}), got {name!r}")
+    if name not in BACKENDS:
+        raise DegustaError(f"{key}: unknown backend {name!r} (known: {', '.join(BACKENDS)})")
+    module, attr = BACKENDS[name].split(":")
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except ModuleNotFoundError as e:
+        if e.name and e.name.startswith("degusta_learn"):
+            raise DegustaError(f"{key}: backend {name!r} is not available ({e.name} missing)") from None
+        raise
 
-    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
-                 seed: int | None = None) -> list[Completion]:
-        """Return up to n completions of `prompt` (fewer only if the service gave fewer)."""
-        ...
+
+def _backends_with(test) -> list[str]:
+    """Names of the registered backends whose class passes `test` (an entry that fails to import is skipped)."""
+    found = []
+    for name in list(BACKENDS):
+        try:
+            if test(backend_class(name)):
+                found.append(name)
+        except Exception:
+            continue
+    return found
 
 
 @dataclass
 class BackendConfig:
-    """The `backend:` section of a zero-shot predict config."""
+    """The keys of a `backend:` section every backend takes; each backend's config class adds its own."""
 
-    name: str = "openai"
-    """Which backend: openai (any OpenAI-compatible server), anthropic, gemini, hf (local), replay."""
+    name: str = DEFAULT_BACKEND
+    """Which backend (a name in `BACKENDS`): openai (any OpenAI-compatible server), anthropic, gemini, hf, replay."""
     model: str = "gpt-4o"
     """Model name at the service (or a hub id / folder for hf)."""
-    base_url: str | None = None
-    """OpenAI-compatible endpoint, e.g. http://127.0.0.1:8000/v1 for vLLM, :11434/v1 for Ollama."""
-    api_key_env: str | None = None
-    """Environment variable holding the API key (default OPENAI_API_KEY / ANTHROPIC_API_KEY / GEMINI_API_KEY)."""
     max_tokens: int = 1024
     """Most tokens per sampled answer."""
-    timeout: float = 120.0
-    """Seconds before a request counts as timed out (then retried)."""
-    detail: str | None = None
-    """openai only: image detail "low" (85 tokens an image), "high" or "auto" (unset: the server default)."""
-    adapter: str | None = None
-    """hf only: a peft LoRA adapter folder (from `degusta train`)."""
-    constrained: bool = False
-    """hf only: constrain decoding to the answer grammar."""
-    device: str = "auto"
-    """hf only: cpu, cuda, auto."""
-    dtype: str = "auto"
-    """hf only: float32, bfloat16, float16, auto."""
-    image_size: int | None = None
-    """hf only: the processor's image size budget (unset: the model's default)."""
-    path: str | None = None
-    """replay only: the JSONL file of recorded answers."""
     structured_output: bool = False
     """Force the answer to a JSON schema (`{"objects": [...]}`; openai json_schema strict, anthropic forced
     tool, gemini response_schema). Default false: the paper's free-text answers. hf: not available (use
     `constrained`); replay: ignored (recorded answers of either kind parse)."""
 
-    def __post_init__(self):
-        if self.name not in BACKENDS:
-            raise DegustaError(f"backend.name: unknown backend {self.name!r} (known: {', '.join(BACKENDS)})")
-        if self.max_tokens < 1:
-            raise DegustaError(f"backend.max_tokens: expected >= 1, got {self.max_tokens}")
-        if self.timeout <= 0:
-            raise DegustaError(f"backend.timeout: expected > 0, got {self.timeout}")
-        if self.detail not in (None, "low", "high", "auto"):
-            raise DegustaError(f"backend.detail: expected low, high or auto, got {self.detail!r}")
-        if self.structured_output and self.name not in STRUCTURED_BACKENDS:
-            hint = (" (the hf backend constrains decoding itself: set backend.constrained: true)"
-                    if self.name == "hf" else "")
-            raise DegustaError(f"backend.structured_output: the {self.name} backend takes no JSON schema; "
-                               f"it works with {', '.join(STRUCTURED_BACKENDS)}{hint}")
+    answer_keys: ClassVar[tuple[str, ...]] = ()
+    """This backend's own keys that change what the model answers (they join every cache key)."""
 
-    @property
-    def key_env(self) -> str | None:
-        """The environment variable the key is read from (None: this backend needs no key)."""
-        return self.api_key_env or DEFAULT_KEY_ENV.get(self.name)
+    def __post_init__(self):
+        cls = backend_class(self.name)
+        if self.max_tokens != "auto" and self.max_tokens < 1:  # auto: hf only (HFConfig), sized from the data
+            raise DegustaError(f"backend.max_tokens: expected >= 1, got {self.max_tokens}")
+        if self.structured_output and not cls.takes_schema:
+            raise DegustaError(f"backend.structured_output: the {self.name} backend takes no JSON schema; it works "
+                               f"with {', '.join(_backends_with(lambda c: c.takes_schema))}{cls.schema_hint}")
+        if not isinstance(self, cls.config_class):
+            raise DegustaError(f"backend.name: the {self.name} backend is configured by {cls.config_class.__name__}, "
+                               f"not {type(self).__name__} (build it with backend_config)")
+
+    @classmethod
+    def section_class(cls, data: dict, prefix: str = "") -> type[BackendConfig]:
+        """The config class of the backend a `backend:` section names (the config loader builds the section
+        into it); a key that is another backend's is refused in one line naming both."""
+        name = data.get("name", cls.__dataclass_fields__["name"].default)
+        config = backend_class(name, key=f"{prefix}name").config_class
+        if not issubclass(config, cls):
+            raise DegustaError(f"{prefix}name: expected a backend configured by {cls.__name__}, got {name!r}")
+        own = {f.name for f in dataclasses.fields(config) if f.init}
+        for key in data:
+            owners = [] if key in own else _backends_with(
+                lambda c, key=key: key in {f.name for f in dataclasses.fields(c.config_class)})
+            if owners:  # e.g. `--set backend.name=replay` on a config written for openai
+                section = prefix.rstrip(".") or "backend"
+                raise DegustaError(f"{prefix}{key}: not a key of the {name} backend but of {', '.join(owners)} "
+                                   f"({name} takes: {', '.join(sorted(own))}; to switch backends, replace the "
+                                   f"whole section: --set '{section}={{name: {name}, ...}}')")
+        return config
+
+    def answer_fields(self) -> dict[str, Any]:
+        """The keys that change what the model answers, as the response cache keys them."""
+        return {"name": self.name, "model": self.model, **KEYED_DEFAULTS,
+                **{k: getattr(self, k) for k in self.answer_keys}}
+
+
+def backend_config(name: str = DEFAULT_BACKEND, **keys) -> BackendConfig:
+    """The config of backend `name` with `keys`, checked as a `backend:` section of a config file is."""
+    from degusta_learn.config import from_dict
+
+    return from_dict(BackendConfig, {"name": name, **keys}, prefix="backend.")
+
+
+class Backend:
+    """A VLM that turns a `Prompt` into n sampled completions, and what it is (class attributes that the
+    runner and the cost estimator read without building one). A subclass declares each of them."""
+
+    name: ClassVar[str] = ""
+    """The name it is registered under (`BACKENDS`) and written in configs, ledgers and diagnostics."""
+    config_class: ClassVar[type[BackendConfig]] = BackendConfig
+    """Its `backend:` section: a BackendConfig subclass whose `name` defaults to this backend's."""
+    per_sample: ClassVar[bool] = False
+    """True: one request per sample (an API without `n`), so the runner asks for one answer at a time and
+    caches each at once; False: n samples in one request (fewer returned are asked for again)."""
+    cacheable: ClassVar[bool] = True
+    """False: its answers are not kept in the response cache (replay: the file is the cache)."""
+    takes_schema: ClassVar[bool] = False
+    """True: `structured_output: true` is accepted (sent as a JSON schema, or ignored)."""
+    schema_hint: ClassVar[str] = ""
+    """Appended to the error refusing `structured_output: true` (what to use instead)."""
+    key_env: ClassVar[str | None] = None
+    """The environment variable its API key is read from when `api_key_env` is unset (None: no key)."""
+
+    @classmethod
+    def is_local(cls, cfg: BackendConfig) -> bool:
+        """True: requests stay on this machine (a local model or server) and cost nothing unless the
+        config's `prices` names the model; False: a paid service, priced from `costs.DEFAULT_PRICES`."""
+        return False
+
+    @classmethod
+    def image_tokens(cls, width: int, height: int, cfg: BackendConfig) -> int:
+        """Input tokens one image of a prompt costs (the provider's rule; an estimate for local models)."""
+        return costs.tile_image_tokens(width, height)
+
+    @classmethod
+    def input_tokens(cls, prompt: Prompt, cfg: BackendConfig) -> int:
+        """Estimated input tokens of one request carrying `prompt`."""
+        return costs.prompt_tokens(prompt, lambda w, h: cls.image_tokens(w, h, cfg))
+
+    @classmethod
+    def price(cls, cfg: BackendConfig, prices: dict[str, Any]) -> tuple[float, float] | None:
+        """USD per 1M (input, output) tokens of a request (None: free or unknown); `prices` overrides the table."""
+        if cls.is_local(cfg) and cfg.model not in prices:
+            return None
+        return costs.price(cfg.model, prices)
+
+    @classmethod
+    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> Backend:
+        """Build the backend (clients, keys, a local model) from its config."""
+        raise NotImplementedError
+
+    def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
+                 seed: int | None = None) -> list[Completion]:
+        """Return up to n completions of `prompt` (fewer only if the service gave fewer)."""
+        raise NotImplementedError
 
 
 class BackendError(Exception):
@@ -128,13 +217,14 @@ REDACTED = "***"
 
 
 def redact(text):
-    """Text with every API key removed: the values of the key variables in use (and the known defaults),
-    any `Authorization` / `api-key` / `x-api-key` / `x-goog-api-key` header value, credentials in a URL
-    (`https://user:password@host`, `?key=...`, `&token=...`), and sk-... / AIza... tokens. The one function every write point of the prompting package passes text through (cache,
+    """Text with every API key removed: the values of the key variables in use (and of every registered
+    backend's `key_env`), any `Authorization` / `api-key` / `x-api-key` / `x-goog-api-key` header value,
+    credentials in a URL (`https://user:password@host`, `?key=...`, `&token=...`), and sk-... / AIza...
+    tokens. The one function every write point of the prompting package passes text through (cache,
     ledger, predictions diagnostics, error messages); non-text values are returned unchanged."""
     if not isinstance(text, str) or not text:
         return text
-    for env in {*DEFAULT_KEY_ENV.values(), *_extra_key_envs}:
+    for env in {*_default_key_envs(), *_extra_key_envs}:
         value = os.environ.get(env)
         if value and len(value) >= 4 and value in text:
             text = text.replace(value, REDACTED)
@@ -156,14 +246,22 @@ def redact_json(value):
 
 
 _extra_key_envs: set[str] = set()
+_default_envs: tuple[tuple, frozenset[str]] = ((), frozenset())  # (the registry it was read from, its key_envs)
 
 
-def api_key(cfg: BackendConfig, required: bool = True) -> str | None:
-    """The API key from the environment variable `cfg.key_env` (never from a config file)."""
-    env = cfg.key_env
-    if env:
-        _extra_key_envs.add(env)
-    value = os.environ.get(env) if env else None
+def _default_key_envs() -> frozenset[str]:
+    """The `key_env` of every registered backend: their values are scrubbed even where they are not in use."""
+    global _default_envs
+    entries = tuple(BACKENDS.items())
+    if _default_envs[0] != entries:
+        _default_envs = (entries, frozenset(backend_class(n).key_env for n in _backends_with(lambda c: c.key_env)))
+    return _default_envs[1]
+
+
+def api_key(env: str, required: bool = True) -> str | None:
+    """The API key in the environment variable `env` (never from a config file)."""
+    _extra_key_envs.add(env)
+    value = os.environ.get(env)
     if not value and required:
         raise DegustaError(f"backend.api_key_env: environment variable {env} is not set "
                            f"(export {env}=... ; keys are never read from config files)")
@@ -190,14 +288,5 @@ class AnswerSchemas:
 
 
 def make_backend(cfg: BackendConfig, grid=None, catalog=None) -> Backend:
-    """Build the backend named by `cfg.name` (imports its module on first use)."""
-    if cfg.name not in BACKENDS:
-        raise DegustaError(f"backend.name: unknown backend {cfg.name!r} (known: {', '.join(BACKENDS)})")
-    module, attr = BACKENDS[cfg.name].split(":")
-    try:
-        cls = getattr(importlib.import_module(module), attr)
-    except ModuleNotFoundError as e:
-        if e.name and e.name.startswith("degusta_learn"):
-            raise DegustaError(f"backend.name: backend {cfg.name!r} is not available ({e.name} missing)") from None
-        raise
-    return cls.from_config(cfg, grid, catalog)
+    """Build the backend `cfg` names (imports its module on first use)."""
+    return backend_class(cfg.name).from_config(cfg, grid, catalog)

@@ -8,15 +8,28 @@ With `structured_output: true` the config carries `response_mime_type="applicati
 schema in Gemini's OpenAPI subset (`gemini_schema`: no additionalProperties, integer enums written as
 `format: enum` strings, `propertyOrdering` for the key order).
 
+What it is: one request per sample; a paid service priced by model name (a `base_url` on this machine,
+a proxy, is not priced unless `prices` names the model); 258 input tokens an image.
+
 Example:
-    backend = GeminiBackend.from_config(BackendConfig(name="gemini", model="gemini-1.5-pro"))
+    backend = GeminiBackend.from_config(GeminiConfig(model="gemini-1.5-pro"))
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.backends.base import AnswerSchemas, BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.remote import RemoteConfig, is_loopback
 from degusta_learn.prompting.prompt import ImagePart, Prompt
+
+
+@dataclass
+class GeminiConfig(RemoteConfig):
+    """The `backend:` keys of the gemini backend."""
+
+    name: str = "gemini"
 
 
 def _import():
@@ -34,18 +47,31 @@ def _transient(e: Exception) -> bool:
     return any(k in n for n in names for k in ("Timeout", "TransportError", "ConnectError", "NetworkError"))
 
 
-class GeminiBackend:
+class GeminiBackend(Backend):
     """Gemini via `client.models.generate_content`; n separate requests."""
 
     name = "gemini"
+    config_class = GeminiConfig
+    per_sample = True  # one candidate a request
+    cacheable = True
+    takes_schema = True  # response_mime_type + response_schema
+    key_env = "GEMINI_API_KEY"
+
+    @classmethod
+    def is_local(cls, cfg: GeminiConfig) -> bool:
+        return is_loopback(cfg.base_url)  # a proxy on this machine: not priced unless `prices` names the model
+
+    @classmethod
+    def image_tokens(cls, width: int, height: int, cfg: GeminiConfig) -> int:
+        return 258
 
     def __init__(self, model: str, client, schemas: AnswerSchemas | None = None):
         self.model, self.client = model, client
         self.schemas = schemas  # set: structured outputs (response_mime_type + response_schema)
 
     @classmethod
-    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> GeminiBackend:
-        key = api_key(cfg)
+    def from_config(cls, cfg: GeminiConfig, grid=None, catalog=None) -> GeminiBackend:
+        key = api_key(cfg.api_key_env or cls.key_env)
         genai, types, _ = _import()
         options = types.HttpOptions(base_url=cfg.base_url, timeout=int(cfg.timeout * 1000)) if cfg.base_url \
             else types.HttpOptions(timeout=int(cfg.timeout * 1000))

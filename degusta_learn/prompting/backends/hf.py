@@ -4,12 +4,16 @@ Loads the model offline (`vlm.load.load_vlm`: hub id from the local cache or a f
 download), optionally with a peft adapter (`backend.adapter`), and answers with
 `vlm.generate.generate_answers`, optionally constrained to the answer grammar
 (`backend.constrained: true`: every answer parses). A fine-tuned adapter or model folder carries
-`degusta_finetune.json` (written by `degusta train`): the backend re-applies its prompt options (image
-groups, composed canvases) and image budget, and refuses a different method or grid than the one
-trained, so the model is prompted exactly as it was trained. A base pretrained by degusta
-(`kind: pretrain`, e.g. checkpoints/tiny_vlm_base) carries `degusta_base.json` instead: its image size,
-grid and prompt layout are applied the same way when it runs zero-shot. With a grid method, an image
-budget too coarse to show single grid cells is refused (`backend.image_size`).
+`degusta_finetune.json` (a `FinetuneRecord`, vlm/record.py, written by `degusta train`): the backend
+re-applies its prompt options (image groups, composed canvases) and image budget, and refuses a different
+method or grid than the one trained, so the model is prompted exactly as it was trained. A base
+pretrained by degusta (`kind: pretrain`, e.g. checkpoints/tiny_vlm_base) carries `degusta_base.json` (a
+`BaseRecord`) instead: its image size, grid and prompt layout are applied the same way when it runs
+zero-shot. With a grid method, an image budget too coarse to show single grid cells is refused
+(`backend.image_size`). Before predicting, the runner calls `check_run` with the dataset and episodes:
+predicting on participants a fine-tuned model was trained or validated on (another split `seed`, or
+another `dataset` with the same participant ids) is refused, and so are images rendered at another size
+than in training (`image_size`).
 
 Usage (configs/predict_hf_tiny_finetuned.yaml):
     backend: {name: hf, model: checkpoints/tiny/idefics3, adapter: checkpoints/finetune_tiny_cpu/adapter,
@@ -18,51 +22,91 @@ Usage (configs/predict_hf_tiny_finetuned.yaml):
 
 from __future__ import annotations
 
+import functools
+
 import threading
-from pathlib import Path
+from dataclasses import dataclass
+from typing import Literal
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import read_json
-
-META_FILE = "degusta_finetune.json"
-BASE_META_FILE = "degusta_base.json"  # a base pretrained by degusta (finetune/pretrain): how it sees images
+from degusta_learn.prompting.backends.base import Backend, BackendConfig
 
 
-def read_meta(*folders: str | None) -> dict | None:
-    """How a model expects to be prompted: the fine-tuning metadata of the first folder that has it
-    (adapter first, then model), else a degusta-pretrained base's (its image size, grid and prompt layout)."""
-    for name in (META_FILE, BASE_META_FILE):
-        for folder in folders:
-            if folder and (Path(folder) / name).is_file():
-                return read_json(Path(folder) / name)
-    return None
+DECODING_VERSION = 2
+"""Bump when `vlm.generate`'s sampling or `vlm.grammar` changes what a seeded answer is (2: per-answer noise
+streams, sorted cells and per-type cell limits in the grammar)."""
 
 
-class HFBackend:
+@dataclass
+class HFConfig(BackendConfig):
+    """The `backend:` keys of the hf backend (`model`: a hub id in the local cache or a model folder)."""
+
+    name: str = "hf"
+    max_tokens: int | Literal["auto"] = "auto"
+    """Most new tokens per answer; auto: the dataset's longest ground-truth answer with this model's
+    tokenizer + 10%, + the tokens closing a constrained answer reserves (`vlm.generate.answer_token_budget`)."""
+    adapter: str | None = None
+    """A peft LoRA adapter folder (from `degusta train`)."""
+    constrained: bool = False
+    """Constrain decoding to the answer grammar."""
+    device: str = "auto"
+    """cpu, cuda, auto."""
+    dtype: Literal["auto", "float32", "bfloat16", "float16"] = "auto"
+    """float32, bfloat16, float16, auto."""
+    image_size: int | None = None
+    """The processor's image size budget (unset: the model's default)."""
+
+    answer_keys = ("adapter", "constrained", "dtype", "image_size")
+
+    def answer_fields(self) -> dict:
+        """The base keys plus the decoding version: answers cached before a change of the sampler or the
+        answer grammar are not what this code would write for the same seed, so they are not reused."""
+        return {**super().answer_fields(), "decoding": DECODING_VERSION}
+
+
+class HFBackend(Backend):
     """A local transformers VLM behind the Backend protocol (generation is serialized by a lock)."""
 
     name = "hf"
+    config_class = HFConfig
+    per_sample = False  # n answers from one generate call
+    cacheable = True
+    takes_schema = False  # it constrains decoding itself
+    schema_hint = " (the hf backend constrains decoding itself: set backend.constrained: true)"
+    key_env = None
+
+    @classmethod
+    def is_local(cls, cfg: HFConfig) -> bool:
+        return True
+
+    @classmethod
+    def image_tokens(cls, width: int, height: int, cfg: HFConfig) -> int:
+        """This model's image tokens per image at `backend.image_size` (read from its processor and config,
+        offline, no weights); the generic estimate when they cannot be read (a missing folder, tiling)."""
+        side = _image_tokens_per_side(cfg.model, cfg.image_size)
+        return side * side if side else super().image_tokens(width, height, cfg)
 
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None):
-        from degusta_learn.vlm.prompt_options import PromptOptions
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
         from degusta_learn.vlm.load import load_vlm
+        from degusta_learn.vlm.record import FinetuneRecord, locate_record, read_record
 
         self.model = model
-        self.meta = read_meta(adapter, model)
-        if grid is not None and self.meta and self.meta.get("grid"):
-            rows, cols = self.meta["grid"]["rows"], self.meta["grid"]["cols"]
+        self.record_path = locate_record(adapter, model)  # how the model was trained: vlm/record.py
+        self.record = read_record(self.record_path) if self.record_path else None
+        if grid is not None and self.record is not None:
+            rows, cols = self.record.grid.rows, self.record.grid.cols
             if (grid.rows, grid.cols) != (rows, cols):
                 raise DegustaError(f"grid: this model was trained on a {rows}x{cols} grid, the predict config "
                                    f"asks for {grid.rows}x{grid.cols}; set grid.rows={rows} grid.cols={cols}")
         self.vlm, self.processor = load_vlm(model, adapter=adapter, device=device, dtype=dtype, key="backend.model")
-        budget = image_size if image_size is not None else (self.meta or {}).get("image_size")
+        budget = image_size if image_size is not None else (self.record.image_size if self.record else None)
         set_image_budget(self.processor, self.vlm.config, budget, key="backend.image_size")
         if grid is not None:
             check_grid_resolution(self.processor, self.vlm.config, grid, key="backend.image_size")
-        prompt = (self.meta or {}).get("prompt")
-        self.options = PromptOptions(**prompt) if prompt else None
+        self.options = self.record.prompt if self.record else None
+        self.trained_method = self.record.method if isinstance(self.record, FinetuneRecord) else None
         self.constrained, self.grid, self.catalog = constrained, grid, catalog
         if constrained and catalog is None:
             raise DegustaError("backend.constrained: constrained decoding needs the dataset catalog")
@@ -83,12 +127,29 @@ class HFBackend:
             self._grammars[kind] = AnswerGrammar(kind, self.catalog, self.grid)
         return self._grammars[kind]
 
+    def check_run(self, ds, episodes, image_size: int) -> None:
+        """Before predicting `episodes` of `ds` with images rendered at `image_size` px: refuse participants
+        the model was trained or validated on, and another render size than in training (one line each)."""
+        from degusta_learn.scene.dataset import dataset_identity
+
+        if self.record is not None:
+            self.record.check_prediction(dataset_identity(ds), {e.participant for e in episodes}, image_size,
+                                         where=str(self.record_path))
+
+    def token_budget(self, ds, method: str) -> dict:
+        """`max_tokens: auto`: the budget that fits every ground-truth answer of `ds` (`answer_token_budget`)."""
+        from degusta_learn.prompting.answers import answer_kind
+        from degusta_learn.vlm.generate import answer_token_budget
+
+        return answer_token_budget(self.processor.tokenizer, ds, answer_kind(method), self.grid,
+                                   grammar=self.grammar(method) if self.constrained else None)
+
     def complete(self, prompt, n: int, temperature: float, max_tokens: int, seed: int | None = None) -> list:
         from degusta_learn.vlm.prompt_options import adapt_prompt
         from degusta_learn.vlm.generate import generate_answers
 
-        if self.meta and self.meta.get("method") and prompt.method != self.meta["method"]:
-            raise DegustaError(f"method: this model was fine-tuned on {self.meta['method']} prompts, the predict "
+        if self.trained_method and prompt.method != self.trained_method:
+            raise DegustaError(f"method: this model was fine-tuned on {self.trained_method} prompts, the predict "
                                f"config runs {prompt.method}")
         if self.options is not None:
             prompt = adapt_prompt(prompt, self.options)
@@ -96,4 +157,21 @@ class HFBackend:
         with self._lock:
             return generate_answers(self.vlm, self.processor, prompt, n=n, temperature=temperature,
                                     max_new_tokens=max_tokens, constrained=self.constrained, grammar=grammar,
-                                    seed=seed)
+                                    seed=seed, free_pass=True)  # the free answer wherever the grammar changed one
+
+
+@functools.lru_cache(maxsize=16)
+def _image_tokens_per_side(model: str, image_size: int | None) -> int | None:
+    """Image tokens along one side of an image for `model` at `image_size` (None: unknown or unreadable)."""
+    from transformers import AutoConfig
+
+    from degusta_learn.vlm.inputs import image_tokens_per_side, set_image_budget
+    from degusta_learn.vlm.load import load_processor
+
+    try:
+        processor = load_processor(model, "backend.model")
+        config = AutoConfig.from_pretrained(model, local_files_only=True)
+        set_image_budget(processor, config, image_size, key="backend.image_size")
+        return image_tokens_per_side(processor, config)
+    except Exception:  # noqa: BLE001 - an estimate: the run itself reports a missing or broken model in one line
+        return None

@@ -16,55 +16,43 @@ With `structured_output: true` every request carries the answer's JSON schema as
 ignores it and answers free text is parsed as usual; one that refuses it (HTTP 400 naming the schema)
 stops the run with one line naming `backend.structured_output`.
 
+What it is: n samples in one request; a paid service (priced by model name), except a server on this
+machine (loopback `base_url`), which costs nothing unless `prices` names the model; images counted by
+OpenAI's tile rule (`costs.tile_image_tokens`, at the configured `detail`).
+
 Example:
-    backend = OpenAIBackend.from_config(BackendConfig(model="gpt-4o"))
+    backend = OpenAIBackend.from_config(OpenAIConfig(model="gpt-4o"))
     backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
 """
 
 from __future__ import annotations
 
-import email.utils
 import json
-import math
-import time
+from dataclasses import dataclass
 from urllib.parse import urlparse
 
+from degusta_learn.errors import DegustaError
+from degusta_learn.prompting import costs
 from degusta_learn.prompting.answers import STRUCTURED_NAME
-from degusta_learn.prompting.backends.base import AnswerSchemas, BackendConfig, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.remote import RemoteConfig, is_loopback, retry_after
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
-LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1", "0.0.0.0")
 
+@dataclass
+class OpenAIConfig(RemoteConfig):
+    """The `backend:` keys of the openai backend (GPT-4o or any OpenAI-compatible server)."""
 
-def is_local(base_url: str | None) -> bool:
-    return bool(base_url) and (urlparse(base_url).hostname or "") in LOCAL_HOSTS
+    name: str = "openai"
+    detail: str | None = None
+    """Image detail "low" (85 tokens an image), "high" or "auto" (unset: the server default)."""
 
+    answer_keys = ("base_url", "detail")
 
-def retry_after(headers) -> float | None:
-    """Seconds from a Retry-After (seconds or HTTP date) or retry-after-ms header, if any (None when absent
-    or unreadable: a malformed header never raises)."""
-    try:
-        if headers is None:
-            return None
-        ms = headers.get("retry-after-ms")
-        if ms:
-            try:
-                value = float(ms) / 1000.0
-                if math.isfinite(value):
-                    return max(0.0, value)
-            except ValueError:
-                pass
-        value = headers.get("retry-after")
-        if not value:
-            return None
-        try:
-            seconds = float(value)
-            return max(0.0, seconds) if math.isfinite(seconds) else None
-        except ValueError:
-            parsed = email.utils.parsedate_to_datetime(value)
-            return max(0.0, parsed.timestamp() - time.time()) if parsed else None
-    except Exception:  # a garbled date or header object
-        return None
+    def __post_init__(self):
+        super().__post_init__()
+        if self.detail not in (None, "low", "high", "auto"):
+            raise DegustaError(f"backend.detail: expected low, high or auto, got {self.detail!r}")
 
 
 def split_usage(total: int | None, k: int) -> list[int | None]:
@@ -74,10 +62,23 @@ def split_usage(total: int | None, k: int) -> list[int | None]:
     return [total // k + (1 if i < total % k else 0) for i in range(k)]
 
 
-class OpenAIBackend:
+class OpenAIBackend(Backend):
     """Chat completions with images as data URLs; `n` samples per request."""
 
     name = "openai"
+    config_class = OpenAIConfig
+    per_sample = False  # `n` answers in one request
+    cacheable = True
+    takes_schema = True  # response_format json_schema
+    key_env = "OPENAI_API_KEY"
+
+    @classmethod
+    def is_local(cls, cfg: OpenAIConfig) -> bool:
+        return is_loopback(cfg.base_url)
+
+    @classmethod
+    def image_tokens(cls, width: int, height: int, cfg: OpenAIConfig) -> int:
+        return costs.tile_image_tokens(width, height, cfg.detail)
 
     def __init__(self, model: str, client, detail: str | None = None, schemas: AnswerSchemas | None = None):
         self.model, self.client, self.detail = model, client, detail
@@ -85,13 +86,13 @@ class OpenAIBackend:
         self.max_tokens_key = "max_tokens"
 
     @classmethod
-    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> OpenAIBackend:
+    def from_config(cls, cfg: OpenAIConfig, grid=None, catalog=None) -> OpenAIBackend:
         import openai
 
         # The default OPENAI_API_KEY is only ever sent to OpenAI itself; another server (vLLM, Ollama, a
         # proxy) gets a key only from a variable named explicitly in backend.api_key_env.
         official = cfg.base_url is None or (urlparse(cfg.base_url).hostname or "").endswith("api.openai.com")
-        key = (api_key(cfg) if cfg.api_key_env or official else None) or "not-needed"
+        key = (api_key(cfg.api_key_env or cls.key_env) if cfg.api_key_env or official else None) or "not-needed"
         client = openai.OpenAI(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
         return cls(cfg.model, client, cfg.detail,
                    AnswerSchemas(grid, catalog) if cfg.structured_output else None)

@@ -5,7 +5,8 @@
 - a predictions.jsonl written by a zero-shot run (its `diagnostics.responses` hold the raw answers).
 
 Answers are looked up by the prompt's episode id and sample index; a missing answer counts as a failed
-sample. Replay answers are not cached and cost nothing.
+sample. What it is: local (costs nothing), not cached (the file is the cache), every recorded answer
+of an episode in one look-up, `structured_output` accepted and ignored (answers of either kind parse).
 
 Example config:
     backend: {name: replay, path: runs/mogma_gpt4o/predictions.jsonl}
@@ -13,12 +14,24 @@ Example config:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import read_jsonl
-from degusta_learn.prompting.backends.base import BackendConfig, Completion
+from degusta_learn.prompting.backends.base import Backend, BackendConfig, Completion
 from degusta_learn.prompting.prompt import Prompt
+
+
+@dataclass
+class ReplayConfig(BackendConfig):
+    """The `backend:` keys of the replay backend."""
+
+    name: str = "replay"
+    path: str | None = None
+    """The JSONL file of recorded answers (required)."""
+
+    answer_keys = ("path",)
 
 
 def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
@@ -46,17 +59,25 @@ def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
     return out
 
 
-class ReplayBackend:
+class ReplayBackend(Backend):
     """Answers from a file; `complete(prompt, n)` returns the episode's recorded samples 0..n-1."""
 
     name = "replay"
+    config_class = ReplayConfig
+    per_sample = False  # one look-up gives every recorded sample
     cacheable = False  # nothing to save: the file is the cache
+    takes_schema = True  # ignored: recorded answers of either kind parse
+    key_env = None
+
+    @classmethod
+    def is_local(cls, cfg: ReplayConfig) -> bool:
+        return True
 
     def __init__(self, answers: dict[str, dict[int, str]], model: str = "replay"):
         self.answers, self.model = answers, model
 
     @classmethod
-    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> ReplayBackend:
+    def from_config(cls, cfg: ReplayConfig, grid=None, catalog=None) -> ReplayBackend:
         if not cfg.path:
             raise DegustaError("backend.path: the replay backend needs the file of recorded answers")
         return cls(read_replay(cfg.path), model=cfg.model)

@@ -1,0 +1,214 @@
+"""What a model folder trained by degusta says about itself: typed, versioned records, one writer, one reader.
+
+- `degusta_finetune.json` (`FinetuneRecord`), written by `degusta train` (kind finetune) into `adapter/`,
+  `model/`, `merged/` and the run folder: how the model was prompted in training (method, grid, image
+  groups and canvases, image budget, the size the lifted images were rendered at) and what it was trained
+  on (the dataset's path and fingerprint, `scene.dataset.dataset_identity`; the participant split seed;
+  the train and validation participants; the context lengths).
+- `degusta_base.json` (`BaseRecord`), written by the pretrain export (`finetune/pretrain/export.py`): the
+  architecture, image budget, grid and prompt layout of a base pretrained by degusta, and its training facts.
+
+`write_record` is the only writer and `read_record` the only reader (strict JSON, every key and type
+checked; anything wrong is one `DegustaError` naming the file and what to do); `locate_record` finds the
+record of a model (adapter folder first, then model folder; a fine-tuning record before a base record).
+The `hf` backend prompts the model as the record says and, before predicting, calls `check_prediction`:
+a `FinetuneRecord` refuses a run that would score the model on participants it was trained or validated
+on (train/test leakage: another split `seed`, or another `dataset` whose participant ids overlap), and
+both records refuse images rendered at another size than in training (`image_size`).
+
+Format versions: a fine-tuning record is format FINETUNE_VERSION; the unversioned file that degusta wrote
+before (format 1) is refused, since it lacks what the leakage guard needs: re-running the run's training
+command rewrites it. A base record without a version is format 1, the current one (nothing was added).
+
+Example:
+    write_record(out, FinetuneRecord(base_model=..., method="mogma", ...))
+    record = read_record(locate_record("checkpoints/finetune_tiny_cpu/adapter", "checkpoints/tiny/idefics3"))
+    record.check_prediction(dataset_identity(ds), {e.participant for e in episodes}, render_size=224)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+from degusta_learn.config import from_dict
+from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import atomic_write_json, read_json
+from degusta_learn.render.grid import Grid
+from degusta_learn.vlm.prompt_options import PromptOptions
+
+FINETUNE_FILE = "degusta_finetune.json"
+BASE_FILE = "degusta_base.json"
+FINETUNE_VERSION = 2
+"""Format 1: the unversioned dict of earlier versions (no dataset, seed or participants). 2: this record."""
+BASE_VERSION = 1
+
+
+@dataclass(kw_only=True)
+class TrainingData:
+    """What a fine-tuned model was trained on: the leakage guard compares a prediction run with it."""
+
+    dataset: str
+    """The dataset folder as the training config named it."""
+    fingerprint: str
+    """`scene.dataset.dataset_identity` of that dataset when the record was written."""
+    seed: int
+    """The participant split seed (`seed` of the training config)."""
+    contexts: list[int]
+    """Context lengths of the training episodes."""
+    train_participants: list[str]
+    """The participants of the training split (all of them, also when `data.max_train_episodes` subsampled)."""
+    val_participants: list[str]
+    """The participants of the validation split, which chose the best checkpoint (empty: no validation)."""
+
+
+@dataclass(kw_only=True)
+class FinetuneRecord:
+    """`degusta_finetune.json`: how a fine-tuned model is prompted and what it was trained on."""
+
+    FILE: ClassVar[str] = FINETUNE_FILE
+    kind: Literal["degusta_finetune"] = "degusta_finetune"
+    version: int = FINETUNE_VERSION
+    base_model: str
+    """`model.name` of the training config (hub id or folder)."""
+    method: str
+    """The prompting method trained on (its prompts and answer format)."""
+    mode: Literal["lora", "qlora", "full"]
+    """`lora.mode`."""
+    grid: Grid
+    """The grid of grid methods."""
+    prompt: PromptOptions
+    """Image groups sent and groups composed into one canvas (`data.include`, `data.compose`)."""
+    image_size: int | None
+    """The processor's image budget (`model.image_size`; null: the model's default)."""
+    render_size: int
+    """Pixels per side the lifted images were drawn at (`data.render_size`)."""
+    processor_size: dict[str, Any]
+    """The image processor's `size` after the budget was set (for reference)."""
+    trained_on: TrainingData
+    """Dataset, split seed and participants."""
+
+    def check_prediction(self, fingerprint: str, participants: set[str], render_size: int, where: str = "") -> None:
+        """Refuse (one line naming `seed`, `dataset` or `image_size`) predicting on participants this model
+        was trained or validated on, or on images rendered at another size than in training."""
+        t, n, src = self.trained_on, len(participants), where or FINETUNE_FILE
+        seen = len(participants & set(t.train_participants))
+        val = len(participants & set(t.val_participants))
+        if (seen or val) and fingerprint == t.fingerprint:
+            what = (f"{seen} of the {n} participants predicted here are in this model's training split" if seen else
+                    f"{val} of the {n} participants predicted here are the validation participants of this "
+                    "model's training run, which chose its checkpoint")
+            raise DegustaError(f"seed: {what} ({src}: trained with seed {t.seed} on this dataset); predict with "
+                               f"seed={t.seed} and split=test, the participants it never saw")
+        if seen or val:
+            raise DegustaError(
+                f"dataset: {seen or val} of the {n} participant ids predicted here are "
+                f"{'training' if seen else 'validation'} participants of this model ({src}), trained with seed "
+                f"{t.seed} on another dataset ({t.dataset}, fingerprint {t.fingerprint[:12]}; this one's: "
+                f"{fingerprint[:12]}; any change to a dataset folder's files changes it), and the same ids may be "
+                f"the same people; predict on that dataset with seed={t.seed} and split=test, or give these "
+                "participants new ids")
+        _check_render_size(self.render_size, render_size, "data.render_size", where)
+
+
+@dataclass(kw_only=True)
+class BaseRecord:
+    """`degusta_base.json`: a base pretrained by degusta: how it sees images and how it was trained."""
+
+    FILE: ClassVar[str] = BASE_FILE
+    kind: Literal["degusta_base"] = "degusta_base"
+    version: int = BASE_VERSION
+    architecture: dict[str, Any]
+    """`BaseArchitecture` as a dict."""
+    parameters: int
+    image_size: int
+    """The model's image size (the processor's budget)."""
+    render_size: int
+    """Pixels per side the images were drawn at in pretraining (= image_size: no resizing)."""
+    tokens_per_image: int
+    grid: Grid
+    prompt: PromptOptions
+    """The prompt layout of pretraining; the hf backend prompts the base this way zero-shot."""
+    catalog: str
+    """The dataset (catalog and tables) pretrained on, or the embedded default."""
+    training: dict[str, Any]
+    """Command, steps, batch size, examples, learning rate, seed, task mix."""
+    validation_curve: list[dict[str, Any]]
+    """Validation rows {step, val/...} of the training run."""
+
+    def check_prediction(self, fingerprint: str, participants: set[str], render_size: int, where: str = "") -> None:
+        """Refuse images rendered at another size than in pretraining (it saw no participant's data)."""
+        _check_render_size(self.render_size, render_size, "render_size", where)
+
+
+def _check_render_size(trained: int, asked: int, key: str, where: str) -> None:
+    if asked != trained:
+        raise DegustaError(f"image_size: this model was trained on images rendered at {trained} px ({key} in "
+                           f"{where or 'its record'}), the predict config renders them at {asked} px; set "
+                           f"image_size={trained}")
+
+
+def write_record(folder: str | os.PathLike, record: FinetuneRecord | BaseRecord) -> Path:
+    """Write `record` as `folder/<its file name>` (atomically); returns the path."""
+    path = Path(folder) / record.FILE
+    atomic_write_json(path, dataclasses.asdict(record))
+    return path
+
+
+def read_record(path: str | os.PathLike) -> FinetuneRecord | BaseRecord:
+    """Read `degusta_finetune.json` or `degusta_base.json` (the type follows the file name), checked strictly."""
+    path = Path(path)
+    cls = {FINETUNE_FILE: FinetuneRecord, BASE_FILE: BaseRecord}.get(path.name)
+    if cls is None:
+        raise DegustaError(f"{path}: not a record file (expected {FINETUNE_FILE} or {BASE_FILE})")
+    data = read_json(path)
+    kind = cls.kind
+    remedy = (_retrain(path) if cls is FinetuneRecord
+              else "export the base again (degusta train --config <its pretrain config>)")
+    if not isinstance(data, dict):
+        raise DegustaError(f"{path}: not a degusta record (expected a JSON object, got {type(data).__name__}); "
+                           f"{remedy}")
+    version = data.get("version")
+    current = FINETUNE_VERSION if cls is FinetuneRecord else BASE_VERSION
+    if cls is FinetuneRecord and "version" not in data and "kind" not in data and "method" in data:
+        raise DegustaError(f"{path}: written by an older degusta (format 1: no dataset fingerprint, split seed or "
+                           f"trained participants, which the train/test leakage guard needs); {remedy}")
+    if data.get("kind") != kind:
+        raise DegustaError(f"{path}: not a record degusta wrote (\"kind\" is {data.get('kind')!r}, expected "
+                           f"{kind!r}); {remedy}")
+    if cls is BaseRecord and "version" not in data:
+        data = {**data, "version": 1}  # format 1 was written without a version
+        version = 1
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise DegustaError(f"{path}: field 'version': expected an integer, got {version!r}"[:300] + f"; {remedy}")
+    if version > current:
+        raise DegustaError(f"{path}: written by a newer degusta (format {version}; this one reads format "
+                           f"{current}): upgrade degusta_learn")
+    if version < current:
+        raise DegustaError(f"{path}: written by an older degusta (format {version}; this one reads format "
+                           f"{current}); {remedy}")
+    try:
+        return from_dict(cls, data, where=str(path))
+    except DegustaError as e:
+        raise DegustaError(f"{e}; {remedy}") from None
+
+
+def _retrain(path: Path) -> str:
+    """What to do about an unreadable fine-tuning record at `path` (in `<run>/adapter/` or `<run>/`)."""
+    run = next((d for d in (path.parent, path.parent.parent) if (d / "config.yaml").is_file()), None)
+    config = run / "config.yaml" if run is not None else "<run folder>/config.yaml"
+    return (f"re-run its training command (degusta train --config {config}: a finished run resumes at its last "
+            "step, trains no further and rewrites this file), or train again")
+
+
+def locate_record(*folders: str | os.PathLike | None) -> Path | None:
+    """The record file of a model given as (adapter folder, model folder): the first folder's fine-tuning
+    record, else the next one's, else a base record likewise; None when there is none (any other model)."""
+    for name in (FINETUNE_FILE, BASE_FILE):
+        for folder in folders:
+            if folder and os.path.lexists(Path(folder) / name):
+                return Path(folder) / name
+    return None

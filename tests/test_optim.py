@@ -1,0 +1,44 @@
+"""The shared `optim:` section and its schedule (degusta_learn/optim.py), used by every trainer."""
+
+import pytest
+import torch
+
+from degusta_learn.config import load_config
+from degusta_learn.errors import DegustaError
+from degusta_learn.optim import OptimConfig, lr_schedule
+
+
+def _lrs(cfg: OptimConfig, total: int) -> list[float]:
+    opt = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=cfg.lr)
+    sched = lr_schedule(opt, cfg, total)["scheduler"]
+    out = []
+    for _ in range(total):
+        out.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    return out
+
+
+def test_cosine_warms_up_linearly_then_decays_to_the_floor():
+    lrs = _lrs(OptimConfig(lr=1.0, warmup_steps=4, min_lr_ratio=0.1), 20)
+    assert lrs[:5] == pytest.approx([0.0, 0.25, 0.5, 0.75, 1.0])
+    assert all(a >= b for a, b in zip(lrs[4:], lrs[5:]))  # monotone decay after warmup
+    assert lrs[-1] == pytest.approx(0.1, abs=0.01)  # reaches min_lr_ratio * lr at the last step
+
+
+def test_constant_and_warmup_capped_at_half_the_run():
+    assert _lrs(OptimConfig(lr=2.0, warmup_steps=2, schedule="constant"), 6)[2:] == [2.0] * 4
+    lrs = _lrs(OptimConfig(lr=1.0, warmup_steps=100), 10)  # warmup longer than the run: capped at 5
+    assert max(lrs) == pytest.approx(1.0) and lrs.index(max(lrs)) == 5
+
+
+@pytest.mark.parametrize("override, message", [
+    ("optim.schedule=linear", "optim.schedule: expected one of \\['cosine', 'constant'\\]"),
+    ("optim.lr=0", "optim.lr: expected > 0"),
+    ("optim.min_lr_ratio=1.5", "optim.min_lr_ratio: expected a value from 0.0 to 1.0"),
+])
+def test_bad_values_name_the_key(override, message):
+    from degusta_learn.baselines.learned.train import LearnedTrainConfig
+
+    with pytest.raises(DegustaError, match=message):
+        load_config(LearnedTrainConfig, data={}, overrides=[override])
