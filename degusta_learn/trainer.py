@@ -20,10 +20,13 @@ What `fit` does, in order:
    detected before Lightning reads it: the run resumes from `best.ckpt` with a printed note, or is refused
    with a one-line message naming the file when no good checkpoint is left.
 2. `seed_everything(seed, workers=True)` (again: the data order of a resumed run is seeded too).
-3. `build_trainer`: a `lightning.Trainer` with CSV + TensorBoard loggers (`csv/version_N`, `tb/version_N`:
-   a resumed run opens a new version, earlier logs are kept), a `ModelCheckpoint` writing `last.ckpt` and
-   `best.ckpt` (best by `monitor`, e.g. validation RMSD), a progress bar, and the accelerator / devices /
-   strategy / precision from the config — multi-GPU is `devices: 4, strategy: ddp`, no code change.
+3. `build_trainer`: a `lightning.Trainer` with the loggers of `loggers` (default CSV + TensorBoard,
+   `csv/version_N`, `tb/version_N`: a resumed run opens a new version, earlier logs are kept; W&B / MLflow
+   offline into the run folder by default, `tracking_offline`), two `ModelCheckpoint`s writing `best.ckpt`
+   (best by `monitor`, e.g. validation set RMSD, decided right after each validation) and `last.ckpt`
+   (after every validation, improving or not), optionally `EarlyStopping` on the same monitor
+   (`early_stopping_patience`: validations without improvement), a progress bar, and the accelerator /
+   devices / strategy / precision from the config — multi-GPU is `devices: 4, strategy: ddp`, no code change.
 4. `trainer.fit(..., ckpt_path=last.ckpt if resuming, weights_only=True)`; `last.ckpt` is written after
    every validation and once more when training ends, so a run stopped by a crash or Ctrl-C resumes from
    its last validation and a finished run can be extended with a larger `max_epochs` / `max_steps`.
@@ -49,13 +52,13 @@ import tempfile
 import warnings
 import zipfile
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 
-from degusta_learn.config import bounded, read_yaml, seed_field, to_dict
+from degusta_learn.config import bounded, check_choices, read_yaml, seed_field, to_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_text
 
@@ -67,6 +70,8 @@ ACCELERATORS = ("auto", "cpu", "gpu", "cuda", "mps", "tpu")
 PRECISIONS = ("32-true", "32", "64-true", "64", "16-mixed", "16", "bf16-mixed", "bf16", "16-true", "bf16-true",
               "transformer-engine", "transformer-engine-float16")
 MAX_DEVICES = 4096
+LOGGERS = {"csv": None, "tensorboard": None, "wandb": "wandb", "mlflow": "mlflow"}
+"""`trainer.loggers` choices -> the module an optional one needs (installed by the extra of the same name)."""
 
 
 @dataclass
@@ -107,14 +112,26 @@ class TrainerConfig:
     """Validate every this many epochs."""
     monitor: str | None = "val/rmsd"
     """Metric that picks best.ckpt (null: only last.ckpt)."""
-    monitor_mode: str = "min"
+    monitor_mode: Literal["min", "max"] = "min"
     """"min" or "max" for `monitor`."""
+    early_stopping_patience: int | None = bounded(None, 1, 1_000_000)
+    """Stop after this many validations in a row without a better `monitor` (null: never stop early)."""
+    early_stopping_min_delta: float = bounded(0.0, 0.0)
+    """How much `monitor` must improve to count as better for early stopping (0: any improvement)."""
     progress_bar: bool = True
     """Show Lightning's progress bar."""
     num_sanity_val_steps: int = bounded(0, 0, 1_000_000, special=(-1,))
     """Validation batches run before training as a smoke check (0: none)."""
+    loggers: list[str] = field(default_factory=lambda: ["csv", "tensorboard"])
+    """Where metrics go, any of csv (`<run>/csv/`), tensorboard (`<run>/tb/`), wandb, mlflow (optional packages:
+    `pip install 'degusta_learn[tracking]'`); see `tracking_offline`."""
+    tracking_offline: bool = True
+    """wandb / mlflow write only into the run folder: W&B offline mode (`<run>/wandb/`, `wandb sync` uploads it
+    later), an MLflow file store `file:<run>/mlruns` (`mlflow ui --backend-store-uri <run>/mlruns`). false:
+    W&B logs to its server (`wandb login`), MLflow to MLFLOW_TRACKING_URI (required)."""
 
     def __post_init__(self):
+        check_choices(self, "trainer")
         if (not self.run_name or any(c in self.run_name for c in "/\\\0") or self.run_name in (".", "..")
                 or len(self.run_name) > 200):
             raise DegustaError(f"trainer.run_name: expected a plain folder name, got {self.run_name[:80]!r}")
@@ -122,8 +139,6 @@ class TrainerConfig:
             raise DegustaError(f"trainer.run_dir: expected a folder path, got {self.run_dir[:80]!r}")
         if self.max_epochs == -1 and self.max_steps == -1:
             raise DegustaError("trainer.max_epochs / trainer.max_steps: set at least one of them (not both -1)")
-        if self.monitor_mode not in ("min", "max"):
-            raise DegustaError(f"trainer.monitor_mode: expected 'min' or 'max', got {self.monitor_mode!r}")
         if isinstance(self.num_nodes, bool) or not isinstance(self.num_nodes, int) or self.num_nodes < 1:
             raise DegustaError(f"trainer.num_nodes: expected a number of machines >= 1, got {self.num_nodes!r}")
         if self.accumulate_grad_batches < 1:
@@ -143,8 +158,12 @@ class TrainerConfig:
             raise DegustaError(f"trainer.val_check_interval: expected a number of batches >= 1, got {vci}")
         if self.monitor is not None and not self.monitor.strip():
             raise DegustaError("trainer.monitor: expected a logged metric name (or null), got ''")
+        if self.early_stopping_patience is not None and self.monitor is None:
+            raise DegustaError("trainer.early_stopping_patience: early stopping watches trainer.monitor, which is "
+                               "null; name a validation metric in trainer.monitor or set the patience to null")
         if not self.strategy or not isinstance(self.strategy, str):
             raise DegustaError(f"trainer.strategy: expected a Lightning strategy name, got {self.strategy!r}")
+        self.loggers = _check_logger_names(self.loggers)
 
     @property
     def path(self) -> Path:
@@ -224,11 +243,75 @@ def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> 
                                f"fsdp, deepspeed, ...)")
         if (cfg.strategy.startswith("fsdp") or cfg.strategy.startswith("deepspeed")) and not on_gpu:
             raise DegustaError(f"trainer.strategy: {cfg.strategy!r} needs a GPU accelerator; use auto or ddp on CPU")
+    _check_logger_packages(cfg)
     if monitors is not None and cfg.monitor is not None:
         known = sorted(set(monitors))
         if cfg.monitor not in known:
             raise DegustaError(f"trainer.monitor: {cfg.monitor[:60]!r} is never logged by this trainer "
                                f"(logged: {', '.join(known)}; or null for last.ckpt only)")
+
+
+def _check_logger_names(names: Any) -> list[str]:
+    """`trainer.loggers` as a list of distinct known names (a single name is taken as a list of one)."""
+    if isinstance(names, str):
+        names = [names]
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise DegustaError(f"trainer.loggers: expected a list of {', '.join(LOGGERS)}, got {str(names)[:60]!r}")
+    for n in names:
+        if n not in LOGGERS:
+            raise DegustaError(f"trainer.loggers: unknown logger {n[:40]!r} (choose from {', '.join(LOGGERS)})")
+    if len(set(names)) != len(names):
+        raise DegustaError(f"trainer.loggers: {list(names)} names a logger twice")
+    return list(names)
+
+
+def _check_logger_packages(cfg: TrainerConfig) -> None:
+    """An optional logger's package is importable here, or one line with the pip command; MLflow online needs
+    MLFLOW_TRACKING_URI (Lightning's default would be a `./mlruns` folder wherever the command runs)."""
+    import importlib
+
+    for name in cfg.loggers:
+        module = LOGGERS[name]
+        if module is None:
+            continue
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            raise DegustaError(f"trainer.loggers: {name!r} needs the {module} package, not installed here: "
+                               f"pip install 'degusta_learn[{name}]' (or remove {name!r} from trainer.loggers)") from None
+    if "mlflow" in cfg.loggers and not cfg.tracking_offline and not os.environ.get("MLFLOW_TRACKING_URI"):
+        raise DegustaError("trainer.tracking_offline: false sends MLflow runs to MLFLOW_TRACKING_URI, which is not "
+                           "set; set it (e.g. http://host:5000) or keep tracking_offline true (<run>/mlruns)")
+
+
+def build_loggers(cfg: TrainerConfig, run: Path) -> list:
+    """Lightning's own loggers for `cfg.loggers`, each writing under `run` (wandb / mlflow: see
+    `tracking_offline`). W&B and MLflow name the run `run_name` in the project / experiment "degusta"."""
+    made = []
+    for name in cfg.loggers:
+        if name == "csv":
+            from lightning.pytorch.loggers import CSVLogger
+
+            made.append(CSVLogger(save_dir=run, name="csv"))
+        elif name == "tensorboard":
+            from lightning.pytorch.loggers import TensorBoardLogger
+
+            made.append(TensorBoardLogger(save_dir=run, name="tb", default_hp_metric=False))
+        elif name == "wandb":
+            from lightning.pytorch.loggers import WandbLogger
+
+            made.append(WandbLogger(name=cfg.run_name, project="degusta", save_dir=str(run),
+                                    offline=cfg.tracking_offline))
+        elif name == "mlflow":
+            from lightning.pytorch.loggers import MLFlowLogger
+
+            if cfg.tracking_offline:  # MLflow >= 3.x keeps the file store only on this opt-in ("maintenance mode")
+                os.environ["MLFLOW_ALLOW_FILE_STORE"] = "true"
+                uri = (run / "mlruns").resolve().as_uri()
+            else:
+                uri = os.environ["MLFLOW_TRACKING_URI"]
+            made.append(MLFlowLogger(experiment_name="degusta", run_name=cfg.run_name, tracking_uri=uri))
+    return made
 
 
 def _check_cpu_devices(cfg: TrainerConfig) -> None:
@@ -449,9 +532,12 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
         run.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise DegustaError(f"trainer.run_dir: cannot create the run folder {run} ({e.strerror or e})") from None
-    for stale in run.glob(f"{TMP_PREFIX}*"):  # a checkpoint write a kill interrupted
+    for stale in run.glob(f"{TMP_PREFIX}*"):  # a checkpoint or export folder write a kill interrupted
         with contextlib.suppress(OSError):
-            stale.unlink()
+            if stale.is_dir() and not stale.is_symlink():
+                shutil.rmtree(stale)
+            else:
+                stale.unlink()
     atomic_write_text(run / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
     return run, ckpt
 
@@ -543,18 +629,30 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
     """
     import lightning as L
     from lightning.fabric.utilities.exceptions import MisconfigurationException
-    from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
-    from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+    from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint, TQDMProgressBar
 
-    ckpt = ModelCheckpoint(dirpath=run, filename=BEST[:-5], monitor=cfg.monitor, mode=cfg.monitor_mode,
-                           save_top_k=1 if cfg.monitor else 0, save_last=True, enable_version_counter=False,
-                           auto_insert_metric_name=False)
-    cbs = [ckpt, *(callbacks or [])]
+    # Two checkpoint callbacks, because Lightning 2.6's `save_last` writes last.ckpt only when a top-k checkpoint
+    # was saved at the same step (a validation that does not improve the monitor would leave last.ckpt behind):
+    # - best.ckpt: decided right after each validation (never deferred to the epoch's end), so a module's
+    #   on_validation_end, which runs after every callback's, sees the decision (finetune: best_adapter/);
+    #   first, so it is `trainer.checkpoint_callback`;
+    # - last.ckpt: a monitor-free "top 1" rewritten after every validation (no validation: every epoch's end).
+    ckpts = [ModelCheckpoint(dirpath=run, filename=BEST[:-5], monitor=cfg.monitor, mode=cfg.monitor_mode,
+                             save_top_k=1, save_last=False, enable_version_counter=False,
+                             auto_insert_metric_name=False, save_on_train_epoch_end=False)] if cfg.monitor else []
+    ckpts.append(ModelCheckpoint(dirpath=run, filename=LAST[:-5], monitor=None, save_top_k=1, save_last=False,
+                                 enable_version_counter=False, auto_insert_metric_name=False))
+    cbs = [*ckpts, *(callbacks or [])]
     if cfg.monitor:
-        cbs.append(_monitor_guard(cfg.monitor))
+        cbs.append(_monitor_guard(cfg.monitor))  # before EarlyStopping: its one-line error comes first
+    if cfg.early_stopping_patience is not None:  # counts validations (checked after each, never at epoch end);
+        # a NaN monitor counts as no improvement instead of stopping at once
+        cbs.append(EarlyStopping(monitor=cfg.monitor, mode=cfg.monitor_mode, patience=cfg.early_stopping_patience,
+                                 min_delta=cfg.early_stopping_min_delta, check_on_train_epoch_end=False,
+                                 check_finite=False, verbose=False))
     if cfg.progress_bar:
         cbs.append(TQDMProgressBar(refresh_rate=max(1, cfg.log_every_n_steps)))
-    loggers = [CSVLogger(save_dir=run, name="csv"), TensorBoardLogger(save_dir=run, name="tb", default_hp_metric=False)]
+    loggers = build_loggers(cfg, run) or False  # an empty list: no logger at all
     # sharded strategies write their own checkpoint folders; every other one saves through one CheckpointIO
     sharded = cfg.strategy.startswith(("fsdp", "deepspeed"))
     try:
@@ -593,7 +691,21 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
     if not trainer.interrupted:  # last.ckpt is written at each validation; also keep the steps after the last one
         trainer.save_checkpoint(run / LAST, weights_only=False)  # full state (optimizer too), to resume
+    _note_early_stop(trainer, cfg)
     return run
+
+
+def _note_early_stop(trainer, cfg: TrainerConfig) -> None:
+    """Say on stderr (rank 0) when early stopping ended the run, and where the best validation was."""
+    from lightning.pytorch.callbacks import EarlyStopping
+
+    stopper = next((c for c in trainer.callbacks if isinstance(c, EarlyStopping)), None)
+    if stopper is None or stopper.wait_count < stopper.patience or not trainer.is_global_zero:
+        return
+    best = trainer.checkpoint_callback.best_model_score if trainer.checkpoint_callback else None
+    print(f"degusta: note: stopped early at step {trainer.global_step}: {cfg.monitor} did not improve for "
+          f"{stopper.patience} validations (trainer.early_stopping_patience); best "
+          f"{float(best) if best is not None else float('nan'):.4g} is in {BEST}", file=sys.stderr)
 
 
 def gather_unique_rows(module, rows):

@@ -8,6 +8,7 @@ import pytest
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import match
+from degusta_learn.metrics.matching import hamming
 from degusta_learn.scene import Catalog, CatalogObject, default_catalog
 
 CAT = default_catalog()
@@ -26,7 +27,7 @@ def small_catalog():
 
 def brute_force(catalog, gid, pid, gxy, pxy):
     """(min total Hamming, min total distance among those) over all injective assignments."""
-    h = (catalog.features(gid)[:, None] != catalog.features(pid)[None]).sum(-1)
+    h = hamming(catalog.features(gid), catalog.features(pid))  # the distance itself: tests/test_metrics_pairs.py
     d = np.linalg.norm(gxy[:, None] - pxy[None], axis=-1)
     n, m = h.shape
     best = None
@@ -82,7 +83,7 @@ def test_random_cases_against_brute_force():
         gi, pi = match(CAT, gid, pid, gxy, pxy)
         assert len(gi) == len(pi) == min(n, m)
         assert len(set(gi.tolist())) == len(gi) and len(set(pi.tolist())) == len(pi)
-        h = int((CAT.features(gid)[gi] != CAT.features(pid)[pi]).sum())
+        h = int(hamming(CAT.features(gid), CAT.features(pid))[gi, pi].sum())
         d = float(np.linalg.norm(gxy[gi] - pxy[pi], axis=1).sum())
         ref_h, ref_d = brute_force(CAT, gid, pid, gxy, pxy)
         assert h == ref_h
@@ -113,7 +114,7 @@ def test_feature_table_with_sparse_huge_ids_allocates_nothing_by_id():
         ids = [7, 10**11, 3]
 
         def features(self, ids):
-            return np.arange(len(ids) * 2).reshape(len(ids), 2)
+            return np.arange(len(ids) * 7).reshape(len(ids), 7)  # one code per MATCH_FEATURES entry
 
     table = FeatureTable(Sparse())
     assert table.row is None

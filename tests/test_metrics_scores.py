@@ -10,6 +10,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import (
     SET_PENALTY, EpisodeScore, few_matched_fraction, kabsch_rmsd, score_many, score_prediction,
 )
+from degusta_learn.metrics.matching import hamming
 from degusta_learn.scene import Arrangement, Placement, Prediction, default_catalog
 
 CAT = default_catalog()
@@ -131,7 +132,7 @@ def reference_set_rmsd(gt: Arrangement, placements, c=SET_PENALTY):
     if m == 0:
         return c
     gxy, pxy = np.array(gt.positions, dtype=float), np.array([[p.x, p.y] for p in placements])
-    h = (CAT.features(gid)[:, None] != CAT.features(pid)[None]).sum(-1)
+    h = hamming(CAT.features(gid), CAT.features(pid))  # the distance itself: tests/test_metrics_pairs.py
     dist = np.linalg.norm(gxy[:, None] - pxy[None], axis=-1)
     pairs = ([(list(range(n)), list(cols)) for cols in itertools.permutations(range(m), n)] if n <= m else
              [(list(rows), list(range(m))) for rows in itertools.permutations(range(n), m)])

@@ -50,9 +50,9 @@ def test_unmarked_modes_means_and_circular_mean():
 def test_grid_weighted_cell_centres_and_directions():
     responses = [[Gi("plate", 80, ["D4", "D5"], "N")], [Gi("plate", 80, ["D4"], "E")]]
     placements, diag = aggregate(responses, "grid", G)
-    cells = ["D4", "D5", "D4"]  # every listed cell counts once per listing
-    x = sum(centre(c)[0] for c in cells) / 3
-    y = sum(centre(c)[1] for c in cells) / 3
+    # each response weighs the same: the mean of the responses' centroids (D4-D5's midpoint and D4)
+    x = ((centre("D4")[0] + centre("D5")[0]) / 2 + centre("D4")[0]) / 2
+    y = ((centre("D4")[1] + centre("D5")[1]) / 2 + centre("D4")[1]) / 2
     assert G.cell_center("D5") == pytest.approx(centre("D5"))
     assert (placements[0].x, placements[0].y) == pytest.approx((x, y))
     assert placements[0].rotation == pytest.approx(45.0)  # circular mean of N (0) and E (90)

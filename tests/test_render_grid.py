@@ -84,12 +84,21 @@ def test_picture_objects_use_the_footprint_rectangle():
     assert drawn < rect and "G7" in rect - drawn and "G6" in drawn
 
 
-def test_decode_weighted_counts_repeats():
+def test_decode_weighted_weighs_each_response_equally():
+    """The mean of the responses' centroids (the paper): a response listing more cells weighs no more."""
     g = Grid(8, 8)
     x, _ = g.decode_weighted([["A1"], ["A1", "B1"]])
-    assert x == pytest.approx((1 / 16 + 1 / 16 + 3 / 16) / 3)
+    assert x == pytest.approx((1 / 16 + (1 / 16 + 3 / 16) / 2) / 2)  # not (1/16 + 1/16 + 3/16) / 3
+    # A 9-cell plate answer and a 1-cell one pull equally: the midpoint of their centroids.
+    big = [f"{c}{r}" for r in (1, 2, 3) for c in "ABC"]
+    assert g.decode_weighted([big, ["H8"]]) == pytest.approx(((3 / 16 + 15 / 16) / 2, (3 / 16 + 15 / 16) / 2))
+    assert g.decode_weighted([["D4", "E5"], ["D4", "E5"]]) == g.decode(["D4", "E5"])
     with pytest.raises(DegustaError):
         g.decode([])
+    with pytest.raises(DegustaError):
+        g.decode_weighted([])
+    with pytest.raises(DegustaError):
+        g.decode_weighted([["A1"], []])
 
 
 @pytest.mark.parametrize("deg, d", [(0, "N"), (350, "N"), (22.4, "N"), (22.6, "NE"), (22.5, "NE"), (45, "NE"),

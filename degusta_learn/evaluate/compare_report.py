@@ -16,9 +16,10 @@ import numpy as np
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
 from degusta_learn.evaluate.report import (
-    METRIC_NOTES, acceptability_lines, context_table, few_object_warnings, method_table, write_per_episode_csv,
+    METRIC_NOTES, acceptability_lines, answer_table, context_table, few_object_warnings, method_table,
+    write_per_episode_csv,
 )
-from degusta_learn.evaluate.summary import label, ranked
+from degusta_learn.evaluate.summary import GRAMMAR_MARK, label, ranked
 from degusta_learn.fileio import atomic_write_json, atomic_write_text
 
 _HTML = """<!doctype html><html><head><meta charset="utf-8"><title>{title}</title><style>
@@ -111,7 +112,8 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
             pred = next(p for p in preds if p.episode == eid)
             r = by[(method, eid)]
             score = "failed" if r.failed else f"set {r.set_rmsd:.3f}, RMSD {r.rmsd:.3f}, acc {r.object_accuracy:.2f}"
-            panels[method + (" [degenerate]" if summary[method].get("degenerate") else "")] = (pred.placements, score)
+            shown = method + (GRAMMAR_MARK if summary[method].get("constrained") else "")
+            panels[shown + (" [degenerate]" if summary[method].get("degenerate") else "")] = (pred.placements, score)
         first = next(p for p in predictions[ref] if p.episode == eid)
         name = f"qualitative/{n:02d}.png"
         render_side_by_side(ds, renderer, first.participant, first.target, panels, out / name)
@@ -141,9 +143,10 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
     if summary:
         log("[compare] plotting")
         plot_metric_bars(summary, plots / "metrics.png", floor)
-        rmsds = {m: np.array([r.rmsd for r in rows if r.method == m and math.isfinite(r.rmsd)]) for m in summary}
+        shown = {m: m + GRAMMAR_MARK if s.get("constrained") else m for m, s in summary.items()}  # "+ grammar" rows
+        rmsds = {shown[m]: np.array([r.rmsd for r in rows if r.method == m and math.isfinite(r.rmsd)]) for m in summary}
         plot_acceptability(curve, rmsds, plots / "acceptability.png",
-                           {m for m, s in summary.items() if s.get("degenerate")})
+                           {shown[m] for m, s in summary.items() if s.get("degenerate")})
         has_ctx = plot_context(summary, plots / "context.png", floor) is not None
         lines += ["## Results", "", *method_table(summary), "", *few_object_warnings(summary),
                   "![metrics](plots/metrics.png)", ""]
@@ -159,6 +162,9 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
             lines += [f"Grid quantization floor (8 x 8 grid, position -> cells -> position): RMSD {floor:.4f}. "
                       "No grid-answering method can be more precise than this.", ""]
         lines += ["## Failures and cost", "", *_cost_lines(summary), ""]
+        answers = answer_table(summary)
+        if answers:
+            lines += [*answers, ""]
         lines += ["## Paired comparisons", "", *_paired_lines(paired, summary), ""]
         log("[compare] rendering qualitative images")
         lines += ["## Qualitative: ground truth and each method side by side", "",

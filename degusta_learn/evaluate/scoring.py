@@ -26,7 +26,8 @@ compare's `<out>/predictions/` and rows of the reports, so a predictions file's 
 
 CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", "failed", "n_gt", "n_pred",
                "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd", "tokens",
-               "cost_usd")
+               "cost_usd", "n_samples", "n_parsed", "constrained", "n_decoded", "forced_closes", "n_free_known",
+               "n_free_parsed")
 
 
 @dataclass
@@ -50,6 +51,14 @@ class EpisodeRow:
     set_rmsd: float  # set-aware (OSPA) RMSD: c = SET_PENALTY per unmatched object; c for a failed prediction
     tokens: float | None = None
     cost_usd: float | None = None
+    # Answers of methods that parse model text (zero-shot, fine-tuned VLMs), from the prediction's diagnostics:
+    n_samples: int | None = None  # answers sampled
+    n_parsed: int | None = None  # of which parsed
+    constrained: bool | None = None  # decoded inside the answer grammar (a local model; None: not reported)
+    n_decoded: int | None = None  # answers whose decoding is known (a local model's, not read back from a cache)
+    forced_closes: int | None = None  # answers the token budget closed early (grammar) or cut off (free)
+    n_free_known: int | None = None  # grammar: answers whose free-decoding version is known ...
+    n_free_parsed: int | None = None  # ... and of those, how many parse (what free decoding would score)
 
     def to_row(self) -> dict:
         return asdict(self)
@@ -66,6 +75,22 @@ def usage_number(diagnostics, key: str) -> float | None:
     except (OverflowError, ValueError):
         return None
     return value if math.isfinite(value) and value >= 0 else None
+
+
+def _count(d, key: str) -> int | None:
+    """d[key] as an int >= 0, else None (missing or malformed diagnostics are never an error)."""
+    v = d.get(key) if isinstance(d, dict) else None
+    return v if isinstance(v, int) and not isinstance(v, bool) and v >= 0 else None
+
+
+def answer_counts(diagnostics) -> dict:
+    """The answer fields of an EpisodeRow from a prediction's diagnostics (`prompting.aggregate`)."""
+    decoding = diagnostics.get("decoding") if isinstance(diagnostics, dict) else None
+    constrained = decoding.get("constrained") if isinstance(decoding, dict) else None
+    return {"n_samples": _count(diagnostics, "n_responses"), "n_parsed": _count(diagnostics, "n_parsed"),
+            "constrained": constrained if isinstance(constrained, bool) else None,
+            "n_decoded": _count(decoding, "known"), "forced_closes": _count(decoding, "forced_closes"),
+            "n_free_known": _count(decoding, "free_known"), "n_free_parsed": _count(decoding, "free_parsed")}
 
 
 def _malformed_usage(diagnostics) -> bool:
@@ -182,5 +207,5 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
             n_pred=score.n_pred, n_matched=score.n_matched, object_accuracy=score.object_accuracy,
             rmsd=score.rmsd, rmsd_unregistered=score.rmsd_unregistered, count_error=score.count_error,
             set_rmsd=score.set_rmsd, tokens=usage_number(pred.diagnostics, "tokens"),
-            cost_usd=usage_number(pred.diagnostics, "cost_usd")))
+            cost_usd=usage_number(pred.diagnostics, "cost_usd"), **answer_counts(pred.diagnostics)))
     return rows

@@ -8,7 +8,11 @@ and is left out of the Kabsch and unregistered RMSD means (which is why failure_
 beside them); in the set_rmsd mean it counts as c = SET_PENALTY, the worst score.
 `frac_le2_matched` and `degenerate` say whether Kabsch RMSD flatters the method
 (metrics.few_matched_fraction). `by_context` repeats the summary per context length when the episodes
-span several.
+span several. Methods that parse model text add `parse_rate` (answers parsed / sampled); a local model's
+add `constrained` (decoded inside the answer grammar: labelled GRAMMAR_MARK), `forced_close_rate`
+(answers the token budget closed early or cut off) and, constrained, `parse_rate_free`: the fraction of
+its answers that free decoding (the same model and seeds, no grammar) writes parseably, the number to
+set beside free-text parse rates such as the paper's.
 
 Ranking (the one order every table and plot uses): non-degenerate methods by mean set_rmsd, lower
 first, then the degenerate ones by the same key; ties keep the given order. `summarize` returns its
@@ -27,6 +31,9 @@ from degusta_learn.metrics import THRESHOLDS, bootstrap_ci, few_matched_fraction
 
 METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd")
 DEGENERATE_MARK = " (degenerate: ≤2 objects matched)"
+GRAMMAR_MARK = " + grammar"
+"""Appended to a method decoded inside the answer grammar: its parse rate is 1 by construction, so compare
+its `parse_rate_free` (not its failure rate) with free-text methods and the paper."""
 RANKING_NOTE = ("Methods are ranked by mean set RMSD (lower is better); degenerate methods come after all others, "
                 "whatever their scores.")
 
@@ -65,6 +72,27 @@ def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 
     if costs:
         out["cost_usd_per_episode"] = round(float(np.mean(costs)), 6)
         out["cost_usd_total"] = round(float(np.sum(costs)), 6)
+    out.update(_answer_rates(rows))
+    return out
+
+
+def _answer_rates(rows: list[EpisodeRow]) -> dict:
+    """parse_rate, constrained, forced_close_rate, parse_rate_free (module docstring); {} for methods that
+    parse no model text."""
+    def ratio(num: list, den: list) -> float | None:
+        return round(sum(num) / sum(den), 6) if sum(den) else None
+
+    out: dict = {}
+    sampled = [r for r in rows if r.n_samples is not None and r.n_parsed is not None]
+    if sampled:
+        out["parse_rate"] = ratio([r.n_parsed for r in sampled], [r.n_samples for r in sampled])
+    decoded = [r for r in rows if r.constrained is not None and r.n_decoded]
+    if decoded:
+        out["constrained"] = any(r.constrained for r in decoded)
+        out["forced_close_rate"] = ratio([r.forced_closes or 0 for r in decoded], [r.n_decoded for r in decoded])
+        if out["constrained"]:
+            free = [r for r in decoded if r.n_free_known is not None and r.n_free_parsed is not None]
+            out["parse_rate_free"] = ratio([r.n_free_parsed for r in free], [r.n_free_known for r in free])
     return out
 
 
@@ -100,5 +128,7 @@ def ranked(summary: dict[str, dict]) -> dict[str, dict]:
 
 
 def label(method: str, summary: dict) -> str:
-    """The method's name as tables and plots show it: with DEGENERATE_MARK when it is degenerate."""
-    return method + DEGENERATE_MARK if summary.get("degenerate") else method
+    """The method's name as tables and plots show it: with GRAMMAR_MARK when it decoded inside the answer
+    grammar, and DEGENERATE_MARK when it is degenerate."""
+    name = method + GRAMMAR_MARK if summary.get("constrained") else method
+    return name + DEGENERATE_MARK if summary.get("degenerate") else name

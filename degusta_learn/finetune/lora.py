@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from typing import Literal
 from pathlib import Path
 
-from degusta_learn.config import bounded
+from degusta_learn.config import bounded, check_choices
 from degusta_learn.errors import DegustaError
 
 MODES = ("lora", "full", "qlora")
@@ -35,7 +36,7 @@ _CONNECTOR = ("model.connector", "model.visual.merger", "model.multi_modal_proje
 class LoraConfig:
     """The `lora:` section of a finetune config."""
 
-    mode: str = "lora"
+    mode: Literal["lora", "qlora", "full"] = "lora"
     """"lora" (adapters on a frozen base), "full" (train every weight), "qlora" (4-bit base; GPU + bitsandbytes)."""
     r: int = bounded(16, 1, 4096)
     """Adapter rank: higher = more capacity and memory."""
@@ -56,8 +57,7 @@ class LoraConfig:
     """After training, also write base + adapter merged into `<run>/merged/` (a plain model folder)."""
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise DegustaError(f"lora.mode: expected one of {list(MODES)}, got {self.mode!r}")
+        check_choices(self, "lora")
         if self.r < 1:
             raise DegustaError(f"lora.r: expected >= 1, got {self.r}")
         if not 0 <= self.dropout < 1:

@@ -7,8 +7,11 @@ GPU (SmolVLM-256M-Instruct from the local HF cache):
     degusta train --config configs/finetune_smolvlm_256m.yaml
 
 Writes `checkpoints/<run>/`: config.yaml, last.ckpt / best.ckpt (LoRA: adapter tensors + optimizer
-only), csv/ and tb/ logs, `adapter/` (PeftModel.save_pretrained; LoRA) or `model/` (full), optional
-`merged/`, and `degusta_finetune.json` (how prompts were built: the hf backend re-applies it).
+only), csv/ and tb/ logs, the last weights as `adapter/` (PeftModel.save_pretrained; LoRA) or `model/`
+(full), the best ones (best `trainer.monitor`, default val/set_rmsd: what best.ckpt holds) as `best_adapter/`
+or `best_model/` (what the predict configs load; finetune/export.py), optional `merged/` (last weights),
+and `degusta_finetune.json` (vlm/record.py: how prompts were built and what the model was trained on; the hf
+backend re-applies the one and checks predictions against the other).
 """
 
 from __future__ import annotations
@@ -17,11 +20,8 @@ import random
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json
 from degusta_learn.finetune.config import FinetuneConfig
 from degusta_learn.methods import TrainerSpec
-
-META_FILE = "degusta_finetune.json"
 
 
 def build_examples(cfg: FinetuneConfig, ds, grid):
@@ -37,8 +37,20 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
     val = make_episodes(ds, cfg.data.val_context, "val", cfg.seed) if cfg.data.val_episodes else []
     if len(val) > cfg.data.val_episodes:
         val = random.Random(cfg.seed + 1).sample(val, cfg.data.val_episodes)
-    make = lambda eps: LiftedExamples(ds, eps, cfg.method, grid, cfg.data.render_size, opts)  # noqa: E731
-    return make(train), make(val)
+    resample = cfg.seed if cfg.data.resample_contexts else None  # training contexts drawn afresh each epoch
+    return (LiftedExamples(ds, train, cfg.method, grid, cfg.data.render_size, opts, resample_seed=resample),
+            LiftedExamples(ds, val, cfg.method, grid, cfg.data.render_size, opts))  # validation: fixed
+
+
+def train_sampler(cfg: FinetuneConfig, train, collator):
+    """`(num_replicas, rank) -> TrainSampler` for `FinetuneData`: seeded by `seed`, length-grouped by each
+    example's token count (`count_tokens`, epoch 0's contexts: a resampled context changes only its
+    placement-order lines, a few tokens) when `data.group_by_length`."""
+    from degusta_learn.finetune.data import TrainSampler
+
+    lengths = [c["total"] for c in count_tokens(train, collator)] if cfg.data.group_by_length else None
+    return lambda replicas, rank: TrainSampler(train, cfg.seed, replicas, rank, lengths=lengths,
+                                               batch_size=cfg.data.batch_size)
 
 
 def prepare_model(cfg: FinetuneConfig):
@@ -52,7 +64,7 @@ def prepare_model(cfg: FinetuneConfig):
     if cfg.lora.mode == "qlora":  # a 4-bit base is loaded straight onto the GPU (untested here: no GPU)
         lora.check_qlora()
         quant, device = lora.quantization_config(), "cuda"
-    model, processor = load_vlm(cfg.model.name, device=device, dtype=cfg.model.dtype, key="model.name",
+    model, processor = load_vlm(cfg.model.name, device=device, dtype=cfg.weights_dtype, key="model.name",
                                 quantization_config=quant)
     set_budget(cfg, processor, model.config)
     model.train()
@@ -75,30 +87,47 @@ def set_budget(cfg: FinetuneConfig, processor, model_config) -> None:
 
 
 def check_budget(examples, collator) -> None:
-    """Collate the longest-looking training example now, so a budget error comes before training."""
+    """Collate the longest-looking training example now, so a budget error comes before training: the most
+    context arrangements and objects, with (when contexts are redrawn each epoch) the heaviest context any
+    epoch could draw for it."""
     if len(examples) == 0:
         raise DegustaError("data.contexts: no training episodes (empty train split?)")
     ds = examples.ds
-    longest = max(range(len(examples)), key=lambda i: (len(examples.episodes[i].context), len(
-        ds.arrangement(examples.episodes[i].participant, examples.episodes[i].target).placements)))
-    collator([examples[longest]])
+    heaviest = [examples.heaviest(i) for i in range(len(examples))]
+    size = [(len(ep.context), sum(len(ds.arrangement(ep.participant, t).placements) for t in (*ep.context, ep.target)))
+            for ep in heaviest]
+    i = max(range(len(heaviest)), key=size.__getitem__)
+    collator([examples.example(i, heaviest[i])])
 
 
 def write_meta(out: Path, cfg: FinetuneConfig, processor) -> None:
-    ip = processor.image_processor
-    atomic_write_json(out / META_FILE, {
-        "base_model": cfg.model.name, "method": cfg.method, "mode": cfg.lora.mode,
-        "grid": {"rows": cfg.data.grid.rows, "cols": cfg.data.grid.cols},
-        "prompt": {"include": list(cfg.data.include), "compose": list(cfg.data.compose)},
-        "image_size": cfg.model.image_size, "render_size": cfg.data.render_size,
-        "processor_size": dict(getattr(ip, "size", {}) or {}),
-    })
+    """Write the run's `FinetuneRecord` (`degusta_finetune.json`, vlm/record.py) into `out`: how the prompts
+    were built, and what the model was trained on (dataset fingerprint, split seed, train and validation
+    participants), which the hf backend checks before predicting."""
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import load_dataset, participants_in
+    from degusta_learn.scene.dataset import dataset_identity
+    from degusta_learn.vlm.prompt_options import PromptOptions
+    from degusta_learn.vlm.record import FinetuneRecord, TrainingData, write_record
+
+    ds = load_dataset(cfg.dataset)
+    trained_on = TrainingData(
+        dataset=cfg.dataset, fingerprint=dataset_identity(ds), seed=cfg.seed, contexts=list(cfg.data.contexts),
+        train_participants=participants_in(ds, "train", cfg.seed),
+        val_participants=participants_in(ds, "val", cfg.seed) if cfg.data.val_episodes else [])  # as build_examples
+    write_record(out, FinetuneRecord(
+        base_model=cfg.model.name, method=cfg.method, mode=cfg.lora.mode,
+        grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
+        prompt=PromptOptions(include=list(cfg.data.include), compose=list(cfg.data.compose)),
+        image_size=cfg.model.image_size, render_size=cfg.data.render_size,
+        processor_size=dict(getattr(processor.image_processor, "size", {}) or {}), trained_on=trained_on))
 
 
 def run(cfg: FinetuneConfig) -> Path:
     """Train per `cfg` (resuming `<run>/last.ckpt` if present); returns the run folder."""
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
+    from degusta_learn.finetune.export import save_last, sync_best
     from degusta_learn.vlm.generate import chat_format
     from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing, monitor_keys
     from degusta_learn.prompting import answer_kind
@@ -123,20 +152,16 @@ def run(cfg: FinetuneConfig) -> Path:
                                f"of {cfg.data.batch_size}); use at most {per_epoch} or a fraction like 1.0")
         run_dir = cfg.trainer.path
         module = FinetuneModule(model, processor, cfg, ds, grid, answer_kind(cfg.method), run_dir=run_dir)
-        data = FinetuneData(train, val, collator, cfg.data.batch_size, cfg.data.num_workers)
+        data = FinetuneData(train, val, collator, cfg.data.batch_size, cfg.data.num_workers,
+                            make_sampler=train_sampler(cfg, train, collator))
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
         if module.trainer is not None and not module.trainer.is_global_zero:
             return run_dir
-        if module.lora:
-            out = lora.save_adapter(model, run_dir / "adapter")
-            if cfg.lora.merge:
-                write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor)
-        else:
-            out = run_dir / "model"
-            model.save_pretrained(str(out))
-            processor.save_pretrained(str(out))
-        write_meta(out, cfg, processor)
+        save_last(module, run_dir)  # adapter/ (LoRA) or model/ (full): the last weights
+        if module.lora and cfg.lora.merge:
+            write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor)
         write_meta(run_dir, cfg, processor)
+        sync_best(module, run_dir)  # best_adapter/ or best_model/ = best.ckpt (loads it: keep this last)
         return run_dir
 
 
@@ -235,7 +260,8 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
                                       transformer_activations)
     from degusta_learn.trainer import world_size
 
-    dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu else "float32")
+    dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu and lora_cfg.mode != "full"
+                                                               else "float32")  # full: fp32 master weights
     param_bytes = {"float32": 4, "bfloat16": 2, "float16": 2}[dtype]
     note = f"{dtype} weights"
     if lora_cfg.mode == "qlora":

@@ -2,7 +2,10 @@
 
 Objects are compared by the Hamming distance between their discrete features (`MATCH_FEATURES`: type,
 colours, materials, shape, pattern; integer codes from `Catalog.features`), and matched by scipy's
-Hungarian solver (`linear_sum_assignment`), giving `N = min(len(gt), len(pred))` pairs.
+Hungarian solver (`linear_sum_assignment`), giving `N = min(len(gt), len(pred))` pairs. The two colours
+and the two materials are compared as unordered pairs (`UNORDERED_PAIRS`; the paper's multi-label colours
+and materials): a pair counts the positions that differ in the better of its two alignments, so red/blue
+vs blue/red is 0, red/blue vs blue/green 1, red/red vs blue/blue 2 (`hamming`).
 
 Ties break toward nearer positions. The cost of pairing ground-truth object i with prediction j is
 
@@ -32,10 +35,27 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.scene.catalog import Catalog
+from degusta_learn.scene.catalog import MATCH_FEATURES, UNORDERED_PAIRS, Catalog
 
 _TABLE_MAX_OBJECTS = 2048  # pairwise table up to 2048^2 int8 = 4 MiB; larger catalogs compare features
 _CACHE: dict[int, tuple[weakref.ref, FeatureTable]] = {}
+_PAIRS = [(MATCH_FEATURES.index(first), MATCH_FEATURES.index(second)) for first, second in UNORDERED_PAIRS]
+
+
+def hamming(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
+    """Feature distances between rows of `Catalog.features`: (..., n, F) and (..., m, F) -> (..., n, m).
+
+    The number of differing features, where each `UNORDERED_PAIRS` pair (colours, materials) counts the
+    differences of its better alignment (straight or swapped): pairs compare as unordered pairs.
+    """
+    a, b = fa[..., :, None, :], fb[..., None, :, :]  # (..., n, 1, F), (..., 1, m, F)
+    diff = a != b
+    out = diff.sum(-1)
+    for i, j in _PAIRS:
+        straight = diff[..., i].astype(np.int64) + diff[..., j]
+        swapped = (a[..., i] != b[..., j]).astype(np.int64) + (a[..., j] != b[..., i])
+        out = out - straight + np.minimum(straight, swapped)
+    return out
 
 
 class FeatureTable:
@@ -54,8 +74,7 @@ class FeatureTable:
         self.features = catalog.features(ids)  # (K, F)
         self.hamming = None
         if len(ids) <= _TABLE_MAX_OBJECTS:
-            f = self.features
-            self.hamming = (f[:, None, :] != f[None, :, :]).sum(-1).astype(np.int8)  # (K, K)
+            self.hamming = hamming(self.features, self.features).astype(np.int8)  # (K, K)
 
     def rows(self, ids, what: str) -> np.ndarray:
         """Rows of `ids` (any shape); DegustaError naming the first id the catalog lacks."""
@@ -83,8 +102,7 @@ class FeatureTable:
         """(E, n) and (E, m) rows -> (E, n, m) Hamming distances."""
         if self.hamming is not None:
             return self.hamming[gt_rows[:, :, None], pred_rows[:, None, :]]
-        fg, fp = self.features[gt_rows], self.features[pred_rows]  # (E, n, F), (E, m, F)
-        return (fg[:, :, None, :] != fp[:, None, :, :]).sum(-1)
+        return hamming(self.features[gt_rows], self.features[pred_rows])  # (E, n, F), (E, m, F) -> (E, n, m)
 
 
 def feature_table(catalog: Catalog) -> FeatureTable:

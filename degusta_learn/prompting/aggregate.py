@@ -3,8 +3,9 @@
 - plan length = mode of the lengths of the parsed responses;
 - for each step s: type = mode of the types at step s (over responses that have a step s); object id =
   mode of the ids among the responses of that type at step s;
-- position = mean of their [x, y] (unmarked) or the weighted mean of all listed cell centres (grid,
-  `Grid.decode_weighted`); rotation = circular mean of their rotations (grid: of their directions).
+- position = mean of their [x, y] (unmarked) or the mean of their cell centroids (grid,
+  `Grid.decode_weighted`: each response weighs the same, however many cells it lists); rotation =
+  circular mean of their rotations (grid: of their directions).
 
 Ties in any mode go to the value seen first in response order (responses are ordered by sample index,
 so this is deterministic). An object id already placed at an earlier step is replaced by the next most
@@ -95,11 +96,61 @@ def aggregate(responses: list[list[AnswerItem] | None], kind: str, grid=None) ->
     return placements, diag
 
 
+def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[str, Any]:
+    """What a local model's decoding did to one episode's answers, from their `Completion.decoding`
+    (`vlm.generate`); {} when no answer says (remote APIs, answers read back from the response cache).
+
+    Keys: `constrained` (decoded inside the answer grammar: a "+ grammar" row), `known` (answers that say),
+    `forced_closes` (answers the token budget closed early, constrained; or cut off before their end,
+    free), and for constrained answers `grammar_changed` (answers free decoding would have written
+    otherwise), `free_known` / `free_parsed` (answers whose free version is known / parses: what the same
+    model would score without the grammar, comparable with free-text parse rates), `free_items` /
+    `free_item_errors` (items read from the free answers that parse / of those dropped by the item policy)
+    and `free_responses` (the free answer where the grammar changed it, else null).
+    """
+    from degusta_learn.prompting.answers import AnswerParseError, read_answer
+
+    decs = [s.decoding if s is not None and isinstance(s.decoding, dict) else None for s in samples]
+    known = [d for d in decs if d is not None]
+    if not known:
+        return {}
+    constrained = any(d.get("constrained") for d in known)
+    out: dict[str, Any] = {"constrained": constrained, "known": len(known)}
+    if not constrained:
+        out["forced_closes"] = sum(bool(d.get("cut")) for d in known)
+        return out
+    out["forced_closes"] = sum(bool(d.get("forced_close")) for d in known)
+    out["grammar_changed"] = sum(bool(d.get("grammar_changed")) for d in known)
+    free_known = free_parsed = free_items = free_dropped = 0
+    for s, d in zip(samples, decs):
+        if d is None:
+            continue
+        # an answer the grammar did not change is its own free answer
+        text = d.get("free_text") if d.get("grammar_changed") else s.text
+        if not isinstance(text, str):
+            continue
+        free_known += 1
+        try:
+            answer = read_answer(text, kind, catalog, grid)
+        except AnswerParseError:
+            continue
+        free_parsed += 1
+        free_items += answer.n_read
+        free_dropped += len(answer.item_errors)
+    out.update(free_known=free_known, free_parsed=free_parsed, free_items=free_items,
+               free_item_errors=free_dropped, free_responses=[d.get("free_text") if d else None for d in decs])
+    return out
+
+
 def failure_summary(predictions) -> str:
     """One line for the end of `degusta predict`: failed episodes, and where answers were parsed (zero-shot,
-    fine-tuned models) failed samples and dropped items, each with its rate.
+    fine-tuned models) failed samples and dropped items, each with its rate; for a local model, the answers
+    the token budget closed early and, with the grammar, how many would parse without it.
 
-    Example: "9 episodes, 1 failed (11.1%); samples: 3 of 45 failed (6.7%); items: 2 of 120 dropped (1.7%)".
+    Example: "9 episodes, 1 failed (11.1%); samples: 3 of 45 failed (6.7%); items: 2 of 120 dropped (1.7%)";
+    constrained: "...; decoded inside the answer grammar: 2 of 45 answers closed early by the token budget
+    (4.4%); without the grammar 31 of 45 would parse (68.9%; the grammar changed 20; 12 of their 150 items
+    dropped, 8.0%)".
     """
     n = len(predictions)
     failed = sum(bool(p.failed) for p in predictions)
@@ -113,6 +164,22 @@ def failure_summary(predictions) -> str:
         items = sum(_count(d.get("n_items")) for d in diags)
         dropped = sum(_count(d.get("n_item_errors")) for d in diags)
         line += f"; items: {dropped} of {items} dropped ({_pct(dropped, items)})"
+    decs = [d["decoding"] for d in diags if isinstance(d.get("decoding"), dict) and d["decoding"]]
+    if decs:
+        known = sum(_count(d.get("known")) for d in decs)
+        closed = sum(_count(d.get("forced_closes")) for d in decs)
+        if any(d.get("constrained") for d in decs):
+            free_known = sum(_count(d.get("free_known")) for d in decs)
+            free = sum(_count(d.get("free_parsed")) for d in decs)
+            changed = sum(_count(d.get("grammar_changed")) for d in decs)
+            items = sum(_count(d.get("free_items")) for d in decs)
+            dropped = sum(_count(d.get("free_item_errors")) for d in decs)
+            items_note = f"; {dropped} of their {items} items dropped, {_pct(dropped, items)}" if free else ""
+            line += (f"; decoded inside the answer grammar: {closed} of {known} answers closed early by the token "
+                     f"budget ({_pct(closed, known)}); without the grammar {free} of {free_known} would parse "
+                     f"({_pct(free, free_known)}; the grammar changed {changed}{items_note})")
+        else:
+            line += f"; {closed} of {known} answers cut off by the token budget ({_pct(closed, known)})"
     return line
 
 

@@ -3,6 +3,7 @@
 - grid.py      Grid (cell ids, footprint -> cells, decode), directions, circular mean, quantization_rmsd
 - lifting.py   Renderer (uma, gma, table, gomo, catalog_sheet), oal_text, order_text, METHODS
 - commands.py  render_episode, render_catalog (the `degusta render` verb)
+- compose.py   objects_canvas (the composed object sheet, redrawn legibly), tile_canvas (other composed groups)
 - sprites.py / shapes.py / materials.py   procedural (or picture) object sprites; tables.py   table images
 
 See docs/render.md for the conventions and pictures.

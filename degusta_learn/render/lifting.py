@@ -10,7 +10,9 @@
   tables. `table(id, grid)` is the empty table with the grid.
 - GoMO (grid of marked objects): one `size` x `size` sheet per object type, titled with the type; its
   objects (any number: ceil(sqrt(n)) columns) each with a white rounded box holding the object id in
-  black at the object's top-left corner. `catalog_sheet()` tiles the GoMO sheets of every type.
+  black at the object's top-left corner. `catalog_sheet()` tiles the GoMO sheets of every type. A sheet
+  carries what it shows in `image.info[compose.GOMO_SOURCE]` (type, objects, root), from which
+  `render.compose.objects_canvas` redraws several sheets as one legible composed canvas.
 - OaL (objects as language): `oal_text`, the catalog as JSON text, one object a line.
 - Order: `order_text`, one line listing the placement order of an arrangement's object types.
 
@@ -37,6 +39,7 @@ from PIL import Image, ImageDraw
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.render import text
+from degusta_learn.render.compose import GOMO_SOURCE
 from degusta_learn.render.grid import Grid, as_grid
 from degusta_learn.render.sprites import pixel_size, rotated_sprite, sprite
 from degusta_learn.render.tables import table_image
@@ -267,6 +270,7 @@ class Renderer:
             mx = max(cx0 + gap + 1, ox + shift - mw)
             my = max(cy0 + gap + 1, oy - (mh * 0.25 if overlap else 0))
             text.draw_mark(draw, (mx, my), str(obj.id), mark_fs)
+        im.info[GOMO_SOURCE] = (type_, tuple(objs), self.root)  # what it shows: composed canvases redraw it
         return im
 
     def catalog_sheet(self) -> Image.Image:

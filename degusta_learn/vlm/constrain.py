@@ -1,39 +1,68 @@
-"""Constrained decoding: a LogitsProcessor that keeps generated text inside the answer grammar.
+"""Constrained decoding: the answer grammar as a token mask, and a sampler that records what it changed.
 
-At every step, for every sequence, the generated ids are decoded to text (the *decoded prefix*: with a
-byte-level BPE a token's meaning depends on its neighbours, so the automaton reads the text, never
-single token ids), the grammar state after that text is computed (cached by text), and every token
-whose text would leave the grammar gets -inf. Which tokens fit a state is found by walking a trie of
+`GrammarLogitsProcessor` (a `transformers` LogitsProcessor) masks every token that cannot continue a
+valid answer. At every step, for every sequence, the generated ids are decoded to text (the *decoded
+prefix*: with a byte-level BPE a token's meaning depends on its neighbours, so the automaton reads the
+text, never single token ids), the grammar state after that text is computed (cached by text), and every
+token whose text would leave the grammar gets -inf. Which tokens fit a state is found by walking a trie of
 the vocabulary's token strings together with the automaton, so only viable branches are visited (fast
 even for Qwen's 150k vocabulary); results are cached per state. End-of-turn / EOS ids are allowed only
-once the answer is complete, and then only they are. When the remaining budget of new tokens is down
-to what closing the answer needs (one character per token, worst case), the grammar runs in closing
-mode: no new cells or objects, only the way to "]". So a constrained answer always parses.
+once the answer is complete, and then only they are. When the remaining budget of new tokens is down to
+what closing the answer needs (one character per token, worst case: `AnswerGrammar.max_chars_to_close`),
+the grammar runs in closing mode: no new cells or objects, only the way to "]". So a constrained answer
+always parses.
+
+`Sampler` picks every next token itself, by the Gumbel-max trick: token = argmax(logits / T + G) with
+Gumbel noise G drawn from one seeded generator per sequence (T = 0: plain argmax). That is exact
+sampling at temperature T (no top-k / top-p), and it couples free and constrained decoding: with the same
+seeds, a free run picks the same tokens as the constrained one until the first step where the grammar
+refused the free pick. So the sampler records, per sequence,
+
+- `grammar_changed`: the grammar refused the token free decoding would have picked (else the constrained
+  answer *is* the free answer, token for token);
+- `forced_close`: in closing mode, the budget refused the token the grammar alone would have allowed (the
+  token budget closed the answer early: fewer cells or objects than the model was writing);
+
+and a free pass with the same seeds (`generate.generate_answers`) gives the exact free answer of every
+sequence the grammar changed. The sampler hands `generate` a one-hot distribution, so `generate` must run
+with do_sample=True, temperature 1, top_k 0, top_p 1 (nothing else reshapes it).
 
 Example:
     proc = GrammarLogitsProcessor(AnswerGrammar("grid", catalog, grid), tokenizer, prompt_len, stop_ids,
                                   max_new_tokens=256)
-    model.generate(**inputs, logits_processor=LogitsProcessorList([proc]), max_new_tokens=256)
+    sampler = Sampler(temperature=1.0, seeds=[0, 1], stop_ids=stop_ids, grammar=proc)
+    model.generate(**inputs, logits_processor=LogitsProcessorList([sampler]), max_new_tokens=256,
+                   do_sample=True, temperature=1.0, top_k=0, top_p=1.0, num_return_sequences=2)
+    sampler.grammar_changed, sampler.forced_close     # one flag per sequence
 """
 
 from __future__ import annotations
+
+import weakref
 
 import torch
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.vlm.grammar import AnswerGrammar
 
-_VOCAB_CACHE: dict[int, tuple] = {}
+_TRIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""tokenizer -> {(alphabet, vocabulary size): trie}; an entry goes when its tokenizer does."""
 
 
 def token_trie(tokenizer, alphabet: set[str]) -> dict:
     """Trie {char: node} of the vocabulary's token strings; a node's ids are under key None.
 
-    Only tokens whose text uses `alphabet` characters are kept (no other token can ever fit).
+    Only tokens whose text uses `alphabet` characters are kept (no other token can ever fit). Cached per
+    tokenizer object (weakly: never by `id()`, which a new tokenizer can reuse once the old one is gone),
+    alphabet and vocabulary size (tokens added later give a new trie).
     """
-    key = id(tokenizer)
-    if key in _VOCAB_CACHE and _VOCAB_CACHE[key][0] == frozenset(alphabet):
-        return _VOCAB_CACHE[key][1]
+    key = (frozenset(alphabet), len(tokenizer))
+    try:
+        cached = _TRIES.setdefault(tokenizer, {})
+    except TypeError:  # a tokenizer that cannot be weakly referenced or hashed: build every time
+        cached = {}
+    if key in cached:
+        return cached[key]
     special = set(tokenizer.all_special_ids)
     n = len(tokenizer)
     texts = tokenizer.batch_decode([[i] for i in range(n)], skip_special_tokens=False,
@@ -46,7 +75,7 @@ def token_trie(tokenizer, alphabet: set[str]) -> dict:
         for ch in text:
             node = node.setdefault(ch, {})
         node.setdefault(None, []).append(i)
-    _VOCAB_CACHE[key] = (frozenset(alphabet), root)
+    cached[key] = root
     return root
 
 
@@ -105,21 +134,80 @@ class GrammarLogitsProcessor:
                 stack.append((child, nxt))
         return out
 
+    def closing(self, n_new: int) -> bool:
+        """Whether `n_new` generated tokens leave only the budget that closing the answer needs."""
+        return self.max_new_tokens - n_new <= self.grammar.max_chars_to_close
+
+    def row_mask(self, new_ids, vocab: int, closing: bool) -> torch.Tensor:
+        """(vocab,) additive mask (0 allowed, -inf refused) after the generated ids `new_ids` of one row."""
+        text = self.tokenizer.decode(new_ids, skip_special_tokens=False, clean_up_tokenization_spaces=False)
+        state = self.state_of(text)
+        key = (state, closing, vocab)
+        if key not in self._masks:
+            # state None cannot happen under this processor; finish the sequence instead
+            ids = self.allowed(state, closing) if state is not None else []
+            ids = torch.tensor(ids or self.stop_ids, dtype=torch.long)
+            m = torch.full((vocab,), float("-inf"))
+            m[ids[ids < vocab]] = 0
+            self._masks[key] = m
+        return self._masks[key]
+
     def __call__(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
         new = input_ids[:, self.prompt_len:]
-        closing = self.max_new_tokens - new.shape[1] <= self.grammar.max_chars_to_close
-        mask = torch.full_like(scores, float("-inf"))
-        for row in range(scores.shape[0]):
-            text = self.tokenizer.decode(new[row], skip_special_tokens=False, clean_up_tokenization_spaces=False)
-            state = self.state_of(text)
-            if state is None:  # cannot happen under this processor; finish the sequence instead
-                mask[row, self.stop_ids] = 0
-                continue
-            key = (state, closing)
-            if key not in self._masks:
-                ids = torch.tensor(self.allowed(state, closing) or self.stop_ids, dtype=torch.long)
-                m = torch.full((scores.shape[1],), float("-inf"), dtype=scores.dtype)
-                m[ids[ids < scores.shape[1]]] = 0
-                self._masks[key] = m
-            mask[row] = self._masks[key].to(scores.device)
-        return scores + mask
+        closing = self.closing(new.shape[1])
+        mask = torch.stack([self.row_mask(row, scores.shape[1], closing) for row in new])
+        return scores + mask.to(scores.device, scores.dtype)
+
+
+class Sampler:
+    """Chooses each next token (Gumbel-max at `temperature`, argmax at 0), inside `grammar` if given, and
+    records per sequence whether the grammar or the token budget changed the pick (module docstring).
+
+    A `transformers` LogitsProcessor that returns a one-hot distribution: run `generate` with
+    do_sample=True, temperature=1.0, top_k=0, top_p=1.0 and one seed per returned sequence.
+    """
+
+    def __init__(self, temperature: float, seeds: list[int], stop_ids: list[int],
+                 grammar: GrammarLogitsProcessor | None = None):
+        self.temperature, self.seeds, self.stop_ids = float(temperature), list(seeds), set(stop_ids)
+        self.grammar = grammar
+        self.grammar_changed = [False] * len(seeds)
+        self.forced_close = [False] * len(seeds)
+        self.done = [False] * len(seeds)
+        self._generators: list[torch.Generator] | None = None
+
+    def noise(self, scores: torch.Tensor) -> torch.Tensor:
+        """Gumbel noise, one row per sequence from that sequence's own generator (the same stream every run)."""
+        if self._generators is None:
+            self._generators = [torch.Generator(device=scores.device).manual_seed(s) for s in self.seeds]
+        u = torch.stack([torch.rand(scores.shape[1], generator=g, device=scores.device, dtype=torch.float64)
+                         for g in self._generators])
+        return -torch.log(-torch.log(u.clamp_min(1e-300)))
+
+    def __call__(self, input_ids: torch.LongTensor, scores: torch.FloatTensor) -> torch.FloatTensor:
+        if scores.shape[0] != len(self.seeds):
+            raise DegustaError(f"sampler: {scores.shape[0]} sequences but {len(self.seeds)} seeds")
+        keys = scores.double()
+        if self.temperature > 0:
+            keys = keys / self.temperature + self.noise(scores)
+        pick = keys.argmax(-1)
+        if self.grammar is not None:
+            new = input_ids[:, self.grammar.prompt_len:]
+            closing = self.grammar.closing(new.shape[1])
+            vocab = scores.shape[1]
+            for row in range(scores.shape[0]):
+                if self.done[row]:
+                    continue
+                mask = self.grammar.row_mask(new[row], vocab, closing).to(keys.device, keys.dtype)
+                chosen = (keys[row] + mask).argmax()
+                if chosen != pick[row]:
+                    self.grammar_changed[row] = True
+                if closing and not self.forced_close[row]:
+                    open_mask = self.grammar.row_mask(new[row], vocab, False).to(keys.device, keys.dtype)
+                    self.forced_close[row] = bool((keys[row] + open_mask).argmax() != chosen)
+                pick[row] = chosen
+        for row, token in enumerate(pick.tolist()):
+            self.done[row] = self.done[row] or token in self.stop_ids
+        out = torch.full_like(scores, float("-inf"))
+        out[torch.arange(scores.shape[0], device=scores.device), pick] = 0
+        return out

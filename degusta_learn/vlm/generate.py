@@ -1,23 +1,47 @@
 """Generate answers to a `Prompt` with a local VLM, optionally constrained to the answer grammar.
 
-`generate_answers` is what the hf backend and the validation loop call. Generation stops at the
-template's end-of-turn token (always among the stop ids, see `ChatFormat`). With `constrained=True`
-a `GrammarLogitsProcessor` keeps every sample inside the answer grammar, so every completion parses;
-unconstrained generation stays available and its parse rate is what `parse_rate` reports.
+`generate_answers` is what the hf backend calls; `generate_batch` answers several prompts in one `generate`
+call (left padding, the same sampler and grammar row by row), which the validation loop uses. Generation stops at the
+template's end-of-turn token (always among the stop ids, see `ChatFormat`). Tokens are picked by
+`constrain.Sampler` (exact sampling at the temperature, argmax at 0, one seeded noise stream per answer).
+With `constrained=True` a `GrammarLogitsProcessor` keeps every sample inside the answer grammar, so every
+completion parses; unconstrained generation stays available and its parse rate is what `parse_rate`
+reports.
+
+What decoding did is recorded in each `Completion.decoding`:
+
+- constrained: `constrained: true`, `forced_close` (the token budget closed the answer early: in closing
+  mode it refused the token the grammar alone allowed), `grammar_changed` (the grammar refused a token
+  free decoding would have picked), and with `free_pass=True` the free answer of every answer the grammar
+  changed (`free_text`, `free_cut`: it ran out of tokens): generated again without the grammar on the same
+  noise streams, so it is exactly what `constrained=False` with the same seed writes. An answer the
+  grammar did not change is its own free answer (`free_text` null), so the free parse rate costs only
+  the answers the grammar changed;
+- free: `constrained: false`, `cut` (the answer ran out of `max_new_tokens` before its end-of-turn).
+
+`answer_token_budget` derives `max_new_tokens` from a dataset's ground-truth answers and the tokenizer
+(the hf backend's `max_tokens: auto`).
 
 Example:
     model, processor = load_vlm("checkpoints/tiny/idefics3", adapter="checkpoints/tiny_lora/adapter")
     grammar = AnswerGrammar("grid", ds.catalog, Grid(8, 8))
     completions = generate_answers(model, processor, prompt, n=5, temperature=1.0, max_new_tokens=256,
-                                   constrained=True, grammar=grammar)
+                                   constrained=True, grammar=grammar, free_pass=True)
+    completions[0].decoding   # {'constrained': True, 'forced_close': False, 'grammar_changed': True, ...}
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.vlm.inputs import ChatFormat, encode_prompt
+from degusta_learn.vlm.inputs import ChatFormat, encode_prompt, prompt_messages
+
+BUDGET_MARGIN = 0.1
+"""`answer_token_budget` leaves this fraction above the longest ground-truth answer (another tokenization
+of the same text, a longer answer than any target)."""
 
 
 def chat_format(model, processor) -> ChatFormat:
@@ -29,8 +53,15 @@ def chat_format(model, processor) -> ChatFormat:
     return fmt
 
 
+def _row_seeds(seed: int | None, rows: int) -> list[int]:
+    """One noise-stream seed per answer: from `seed`, or drawn from torch's global generator."""
+    base = int(torch.randint(0, 2**62, ()).item()) if seed is None else int(seed)
+    return [(base * 1_000_003 + r) % 2**63 for r in range(rows)]
+
+
 def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 0.0, max_new_tokens: int = 256,
-                     constrained: bool = False, grammar=None, seed: int | None = None) -> list:
+                     constrained: bool = False, grammar=None, seed: int | None = None,
+                     free_pass: bool = False) -> list:
     """Sample `n` answers to `prompt`.
 
     Args:
@@ -42,46 +73,138 @@ def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 
         max_new_tokens: most new tokens per answer.
         constrained: restrict decoding to `grammar` (an `AnswerGrammar`).
         grammar: required when constrained.
-        seed: torch seed for sampling (reproducible samples).
+        seed: seed of the answers' noise streams (reproducible samples; None: from torch's generator).
+        free_pass: constrained only: also generate, without the grammar, every answer the grammar changed
+            (`decoding.free_text`; see the module docstring).
 
     Returns:
-        n `Completion`s (text without special tokens, prompt and answer token counts).
+        n `Completion`s (text without special tokens, prompt and answer token counts, `decoding`).
+    """
+    return generate_batch(model, processor, [prompt], n, temperature, max_new_tokens, constrained, grammar, [seed],
+                          free_pass)[0]
+
+
+def encode_prompts(processor, fmt: ChatFormat, prompts: list):
+    """Model inputs for `prompts`: one prompt as `encode_prompt` gives it, several left-padded into one batch
+    (every row's new tokens then start at the same position, which the grammar and `generate` need)."""
+    if len(prompts) == 1:
+        return encode_prompt(processor, fmt, prompts[0])
+    texts, images = [], []
+    for prompt in prompts:
+        messages, ims = prompt_messages(prompt)
+        texts.append(fmt.prompt_text(messages))
+        images.append(ims)
+    if any(images) and not all(images):
+        raise DegustaError("generate: a batch of prompts must all have images or all have none")
+    return processor(text=texts, images=images if any(images) else None, padding=True, padding_side="left",
+                     add_special_tokens=False, return_tensors="pt")
+
+
+def generate_batch(model, processor, prompts: list, n: int = 1, temperature: float = 0.0, max_new_tokens: int = 256,
+                   constrained: bool = False, grammar=None, seeds: list[int | None] | None = None,
+                   free_pass: bool = False) -> list[list]:
+    """`generate_answers` for several prompts in ONE `generate` call (left padding): `n` answers per prompt.
+
+    Every answer keeps its own noise stream (`seeds[i]` gives prompt i's answers the streams
+    `generate_answers(..., seed=seeds[i])` would), and the grammar and the sampler work row by row, so each
+    prompt gets what `generate_answers` gives it alone, up to the padding's floating-point effect on the
+    logits (greedy answers of the tiny models are identical: tests/test_finetune_validation.py). The free pass
+    (`free_pass`) runs prompt by prompt, for the answers the grammar changed only. One prompt is exactly
+    `generate_answers`.
+
+    Returns:
+        One list of n `Completion`s per prompt, in order.
     """
     from transformers import LogitsProcessorList
 
-    from degusta_learn.vlm.constrain import GrammarLogitsProcessor
     from degusta_learn.prompting.prompt import Completion
+    from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
 
     if constrained and grammar is None:
         raise DegustaError("backend.constrained: constrained decoding needs the answer grammar (catalog and grid)")
+    seeds = [None] * len(prompts) if seeds is None else list(seeds)
+    if len(seeds) != len(prompts):
+        raise DegustaError(f"generate: {len(prompts)} prompts but {len(seeds)} seeds")
     fmt = chat_format(model, processor)
     tok = processor.tokenizer
     device = next(model.parameters()).device
     dtype = next(p for p in model.parameters() if p.is_floating_point()).dtype
-    inputs = encode_prompt(processor, fmt, prompt)
-    inputs = {k: (v.to(device, dtype) if v.is_floating_point() else v.to(device)) for k, v in inputs.items()}
-    prompt_len = inputs["input_ids"].shape[1]
-    sample = temperature > 0
-    rows = n if sample else 1
-    kwargs = dict(max_new_tokens=max_new_tokens, eos_token_id=fmt.stop_ids, do_sample=sample, use_cache=True,
-                  num_return_sequences=rows, pad_token_id=tok.pad_token_id if tok.pad_token_id is not None
-                  else fmt.end_id)
-    if sample:
-        kwargs.update(temperature=temperature, top_k=0, top_p=1.0)
-    if constrained:
-        kwargs["logits_processor"] = LogitsProcessorList(
-            [GrammarLogitsProcessor(grammar, tok, prompt_len, fmt.stop_ids, max_new_tokens)])
-    if seed is not None:
-        torch.manual_seed(seed)
-    with torch.no_grad():
-        out = model.generate(**inputs, **kwargs)
-    completions = []
     stops = set(fmt.stop_ids)
-    for row in out[:, prompt_len:].tolist():
-        end = next((i for i, t in enumerate(row) if t in stops), len(row))
-        text = tok.decode(row[:end], skip_special_tokens=True, clean_up_tokenization_spaces=False)
-        completions.append(Completion(text=text.strip(), input_tokens=prompt_len, output_tokens=min(end + 1, len(row))))
-    return completions if sample else completions * n
+
+    def run(batch: list, row_seeds: list[int], with_grammar: bool):
+        """(text, prompt tokens, answer tokens, cut) per row (`len(row_seeds) / len(batch)` rows a prompt, in
+        prompt order), and the sampler (what it recorded)."""
+        inputs = encode_prompts(processor, fmt, batch)
+        inputs = {k: (v.to(device, dtype) if v.is_floating_point() else v.to(device)) for k, v in inputs.items()}
+        prompt_len = inputs["input_ids"].shape[1]
+        per_prompt = len(row_seeds) // len(batch)
+        proc = (GrammarLogitsProcessor(grammar, tok, prompt_len, fmt.stop_ids, max_new_tokens)
+                if with_grammar else None)
+        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc)
+        # The sampler picks each token and hands `generate` a one-hot distribution: nothing may reshape it.
+        kwargs = dict(max_new_tokens=max_new_tokens, eos_token_id=fmt.stop_ids, do_sample=True, temperature=1.0,
+                      top_k=0, top_p=1.0, use_cache=True, num_return_sequences=per_prompt,
+                      pad_token_id=tok.pad_token_id if tok.pad_token_id is not None else fmt.end_id,
+                      logits_processor=LogitsProcessorList([sampler]))
+        with torch.no_grad():
+            out = model.generate(**inputs, **kwargs)
+        lengths = inputs["attention_mask"].sum(dim=1).tolist() if "attention_mask" in inputs else [prompt_len]
+        rows = []
+        for r, row in enumerate(out[:, prompt_len:].tolist()):
+            end = next((i for i, t in enumerate(row) if t in stops), None)
+            text = tok.decode(row[:end], skip_special_tokens=True, clean_up_tokenization_spaces=False)
+            rows.append((text.strip(), int(lengths[r // per_prompt]), len(row) if end is None else end + 1,
+                         end is None))
+        return rows, sampler
+
+    k = n if temperature > 0 else 1
+    prompt_seeds = [_row_seeds(s, k) for s in seeds]
+    rows, sampler = run(prompts, [s for ps in prompt_seeds for s in ps], constrained)
+    if constrained:
+        decoding = [{"constrained": True, "forced_close": sampler.forced_close[r],
+                     "grammar_changed": sampler.grammar_changed[r], "free_text": None, "free_cut": False}
+                    for r in range(len(rows))]
+        for i, prompt in enumerate(prompts):
+            changed = [j for j in range(k) if decoding[i * k + j]["grammar_changed"]]
+            if free_pass and changed:
+                free, _ = run([prompt], [prompt_seeds[i][j] for j in changed], False)
+                for j, (text, _, _, cut) in zip(changed, free):
+                    decoding[i * k + j].update(free_text=text, free_cut=cut)
+    else:
+        decoding = [{"constrained": False, "cut": cut} for *_, cut in rows]
+    out = []
+    for i in range(len(prompts)):
+        completions = [Completion(text=text, input_tokens=length, output_tokens=tokens, decoding=d)
+                       for (text, length, tokens, _), d in zip(rows[i * k:(i + 1) * k], decoding[i * k:(i + 1) * k])]
+        if temperature <= 0:
+            completions = [Completion(c.text, c.input_tokens, c.output_tokens, dict(c.decoding))
+                           for c in completions * n]
+        out.append(completions)
+    return out
+
+
+def answer_token_budget(tokenizer, ds, kind: str, grid=None, grammar=None, margin: float = BUDGET_MARGIN) -> dict:
+    """The new-token budget that lets a model write any ground-truth answer of `ds`, from its tokenizer.
+
+    Every arrangement's canonical answer of `kind` (`format_answer`, as fine-tuning targets are written)
+    is tokenized; the budget is the longest plus `margin` of it, plus the end-of-turn token, plus, with a
+    `grammar` (constrained decoding), the tokens its closing mode reserves (`max_chars_to_close`): so
+    closing mode never starts before an answer as long as the longest target is written.
+
+    Returns:
+        {"max_new_tokens": budget, "answer_max": longest answer, "answer_mean": mean, "answers": count,
+         "close_reserve": tokens reserved for closing (0 without grammar)}.
+    """
+    from degusta_learn.prompting.answers import answer_items, format_answer
+
+    if not ds.arrangements:
+        raise DegustaError("max_tokens: auto: the dataset has no arrangements to size the answers from")
+    texts = [format_answer(answer_items(list(a.placements), ds.catalog, kind, grid), kind) for a in ds.arrangements]
+    lengths = [len(ids) for ids in tokenizer(texts, add_special_tokens=False)["input_ids"]]
+    reserve = grammar.max_chars_to_close if grammar is not None else 0
+    longest = max(lengths)
+    return {"max_new_tokens": math.ceil(longest * (1 + margin)) + 1 + reserve, "answer_max": longest,
+            "answer_mean": round(sum(lengths) / len(lengths), 1), "answers": len(lengths), "close_reserve": reserve}
 
 
 def parse_rate(texts: list[str], kind: str, catalog, grid) -> float:

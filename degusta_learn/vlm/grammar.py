@@ -7,10 +7,15 @@ whitespace), restricted to what can be right:
     unmarked:  [{'type': 'plate', 'id': 17, 'position': [0.52, 0.6], 'rotation': 90}, ...]
 
 types from the catalog, ids of *that* type not placed yet (an object goes down once), cells of the grid
-(each at most once per object), the eight
+as the targets list them (`Grid.encode`): distinct, in row-major order (A1, B1, ..., A2, ...), and at
+most as many as an object of that type can cover anywhere on the grid (`max_cells_of`, from the catalog's
+footprints by `render.grid.max_cells`: 8 x 8 grid: plate 9, knife 7, fork 6, spoon 6, cup 4), the eight
 directions, coordinates in [0, 1] with up to 3 decimals, whole-degree rotations 0-359. Every accepted
-text parses with `parse_answer`. Bounds (`max_items`, `max_cells`) and `closing=True` (used when the
-token budget runs low) only allow the way to the end, so a constrained generation always finishes.
+text parses with `parse_answer`, and every ground-truth answer of a dataset is accepted (tested on the
+generated naturalistic and simulated datasets). Bounds (`max_items`, `max_cells_of`) and `closing=True`
+(used when the token budget runs low) only allow the way to the end, and the grammar has no dead ends
+(a comma is allowed only where another cell or object can follow), so a constrained generation always
+finishes.
 
 A state is a plain tuple (hashable: `constrain.py` caches the allowed tokens per state).
 
@@ -52,24 +57,35 @@ _MAX_WS = 2
 class AnswerGrammar:
     """Character-level automaton of valid answers for one catalog and grid."""
 
-    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int = 16):
+    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int | None = None):
+        """`max_cells` caps every type's cell count further (None: each type's footprint bound only)."""
         if kind not in _ITEMS:
             raise DegustaError(f"answer kind: expected one of {list(_ITEMS)}, got {kind!r}")
         self.kind, self.parts = kind, _ITEMS[kind]
-        self.max_items, self.max_cells = min(max_items, len(catalog)), max_cells
+        self.max_items = min(max_items, len(catalog))
         self.types = list(catalog.types)
         self.ids = {t: [str(o.id) for o in catalog.of_type(t)] for t in self.types}
         if kind == "grid":
-            from degusta_learn.render.grid import DIRECTIONS, Grid
+            from degusta_learn.render.grid import DIRECTIONS, Grid, max_cells as footprint_cells
+            from degusta_learn.scene import object_size
 
-            self.cells = list((grid or Grid()).cells)
+            grid = grid or Grid()
+            self.cells = list(grid.cells)
+            self.cell_index = {c: i for i, c in enumerate(self.cells)}
             self.directions = list(DIRECTIONS)
+            self.max_cells_of = {t: max(footprint_cells(*object_size(o), grid.rows, grid.cols)
+                                        for o in catalog.of_type(t)) for t in self.types}
+            if max_cells is not None:
+                self.max_cells_of = {t: min(m, max_cells) for t, m in self.max_cells_of.items()}
+            self.max_cells = max(self.max_cells_of.values(), default=0)
+            """The most cells any object may list (the largest per-type bound)."""
         self._prefixes: dict = {}
+        self._cell_prefixes: dict[int, set[str]] = {}
 
     # ------------------------------------------------------------------ slots
     def _options(self, name: str, type_: str | None) -> list[str]:
         return {"type": lambda: self.types, "id": lambda: self.ids.get(type_, []),
-                "cell": lambda: self.cells, "dir": lambda: self.directions}[name]()
+                "dir": lambda: self.directions}[name]()
 
     def _prefix_ok(self, name: str, buf: str, type_: str | None, exclude=()) -> bool:
         if name == "coord":
@@ -140,20 +156,28 @@ class AnswerGrammar:
                 n = n + (buf,) if value == "id" else n
                 return self.step(("item", part + 1, 0, "", type_, cells, n), ch, closing)
             return None
-        # cells loop: 'C1', 'C2'  (the opening quote of the first cell is in the literal before)
+        # cells loop: 'C1', 'C2'  (the opening quote of the first cell is in the literal before); each cell
+        # comes after the previous one in row-major order (distinct and sorted, as `Grid.encode` lists them)
+        last = self.cell_index[cells[-1]] if cells else -1
         if off == 0:
-            if self._prefix_ok("cell", buf + ch, None, cells):
+            if buf + ch in self._cells_after(last):
                 return ("item", part, 0, buf + ch, type_, cells, n)
-            if ch == "'" and self._complete("cell", buf, None, cells):
+            if ch == "'" and self.cell_index.get(buf, -1) > last:
                 return ("item", part, 1, "", type_, cells + (buf,), n)
             return None
         if off == 1:
-            if ch == "," and not closing and len(cells) < min(self.max_cells, len(self.cells)):
+            if ch == "," and not closing and len(cells) < self.max_cells_of[type_] and last + 1 < len(self.cells):
                 return ("item", part, 2, "", type_, cells, n)
             return self.step(("item", part + 1, 0, "", type_, cells, n), ch, closing)
         if off == 2:
             return ("item", part, 3, "", type_, cells, n) if ch == " " else None
         return ("item", part, 0, "", type_, cells, n) if ch == "'" else None
+
+    def _cells_after(self, last: int) -> set[str]:
+        """Every non-empty prefix of a cell id that comes after cell number `last` (row-major), cached."""
+        if last not in self._cell_prefixes:
+            self._cell_prefixes[last] = {c[:i] for c in self.cells[last + 1:] for i in range(1, len(c) + 1)}
+        return self._cell_prefixes[last]
 
     def _exhausted(self, used: tuple) -> tuple:
         """Types all of whose objects are already placed (choosing one would be a dead end)."""

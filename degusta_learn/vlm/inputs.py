@@ -173,14 +173,24 @@ def image_tokens_per_side(processor, model_config) -> int | None:
 
 
 def check_grid_resolution(processor, model_config, grid, key: str = "model.image_size") -> None:
-    """Refuse an image budget whose image tokens are coarser than the grid's cells.
+    """Refuse an image budget whose image tokens are coarser than the grid's cells (one line naming `key`).
 
     With fewer image tokens per side than grid cells per side, no image token covers a single cell, so
     the model cannot tell which cell an object is in: a grid method cannot be learned or answered.
+    Where the token geometry is not known (another model type, an Idefics3 processor that splits images
+    into tiles) the image tokens of one image are counted with the processor itself, and fewer tokens
+    than the grid has cells is refused.
     """
     n = image_tokens_per_side(processor, model_config)
     need = max(grid.rows, grid.cols)
-    if n is not None and n < need:
+    if n is None:
+        count = _measured_image_tokens(processor, model_config)
+        if count is not None and count < grid.rows * grid.cols:
+            raise DegustaError(f"{key}: an image gives the model {count} image tokens, fewer than the "
+                               f"{grid.rows}x{grid.cols} grid's {grid.rows * grid.cols} cells, so it cannot see "
+                               f"which cell an object is in; raise {key} or use a coarser grid")
+        return
+    if n < need:
         mtype, vc = getattr(model_config, "model_type", ""), model_config.vision_config
         unit = (vc.patch_size * model_config.scale_factor if mtype == "idefics3" else
                 processor.patch_size if mtype == "fast_vlm" else
@@ -188,3 +198,16 @@ def check_grid_resolution(processor, model_config, grid, key: str = "model.image
         raise DegustaError(f"{key}: images give the model {n} x {n} image tokens, fewer than the {grid.rows}x{grid.cols} grid's "
                            f"{need} cells per side, so it cannot see which cell an object is in; use at least "
                            f"{need * unit} px per image (one token per {unit} px) or a coarser grid")
+
+
+def _measured_image_tokens(processor, model_config) -> int | None:
+    """Image tokens of one square image, counted with the processor; None where it cannot be counted."""
+    token_id = getattr(model_config, "image_token_id", None)
+    if token_id is None:
+        token_id = getattr(model_config, "image_token_index", None)
+    if token_id is None:
+        return None
+    try:
+        return tokens_per_image(processor, ChatFormat(processor), token_id)
+    except DegustaError:  # no usable chat template: the backend refuses the model itself
+        return None

@@ -5,7 +5,9 @@ Used wherever a local VLM is prompted: fine-tuning examples (`finetune/data.py`,
 (`degusta_finetune.json`), so a fine-tuned model is always prompted the way it was trained:
 - `include`: which image groups to send ("objects" = GoMO sheets, "context" = final_state_k, "target");
 - `compose`: each listed group ("objects", "context") drawn as one labelled canvas, or "all" images in
-  one canvas, to save image tokens.
+  one canvas, to save image tokens. Composed GoMO sheets are redrawn as one legible object sheet
+  (`render.compose.objects_canvas`: id digits 8 px tall on a 448 px canvas); other groups are tiled
+  (`render.compose.tile_canvas`).
 
 Example:
     opts = PromptOptions(include=["context", "target"], compose=["context"])
@@ -14,12 +16,10 @@ Example:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
-from PIL import Image, ImageDraw
-
 from degusta_learn.errors import DegustaError
+from degusta_learn.render.compose import objects_canvas, sheet_source, tile_canvas
 
 GROUPS = ("objects", "context", "target")
 COMPOSE = ("objects", "context", "all")
@@ -103,27 +103,15 @@ def _compose(parts: list, groups: set[str], label: str) -> list:
         return parts
     name = f"{label}.{members[0].name.rsplit('.', 1)[-1]}"
     names = ", ".join(m.name for m in members)
-    canvas = compose_canvas([(m.name, m.image) for m in members], size=members[0].image.size[0])
-    out[slot:slot + 1] = [f"{name} shows the images {names} side by side, each titled with its name:",
-                          ImagePart(name=name, image=canvas, format=members[0].format)]
+    size = members[0].image.size[0]
+    sources = [sheet_source(m.image) for m in members]
+    if label == "objects":  # the same caption whichever way it is drawn (dry-run token counts use blank images)
+        caption = f"{name} shows the objects of {names} in one image, in this order:"
+    else:
+        caption = f"{name} shows the images {names} side by side, each titled with its name:"
+    if label == "objects" and all(sources):  # GoMO sheets: every object redrawn legibly at the canvas scale
+        canvas = objects_canvas(sources, size)
+    else:
+        canvas = tile_canvas([(m.name, m.image) for m in members], size)
+    out[slot:slot + 1] = [caption, ImagePart(name=name, image=canvas, format=members[0].format)]
     return out
-
-
-def compose_canvas(images: list[tuple[str, Image.Image]], size: int) -> Image.Image:
-    """Tile named images into one square canvas of `size` px, each tile titled with its name."""
-    n = len(images)
-    cols = math.ceil(math.sqrt(n))
-    rows = math.ceil(n / cols)
-    tile = size // cols
-    title = max(10, tile // 10)
-    canvas = Image.new("RGB", (size, size), "white")
-    draw = ImageDraw.Draw(canvas)
-    y0 = (size - rows * tile) // 2
-    for k, (name, im) in enumerate(images):
-        r, c = divmod(k, cols)
-        x, y = c * tile, y0 + r * tile
-        body = im.convert("RGB").resize((tile - 2, tile - title - 2), Image.Resampling.LANCZOS)
-        canvas.paste(body, (x + 1, y + title + 1))
-        draw.rectangle([x, y, x + tile - 1, y + tile - 1], outline=(60, 60, 60))
-        draw.text((x + 3, y + 1), name.rsplit(".", 1)[0], fill=(0, 0, 0))
-    return canvas

@@ -98,13 +98,13 @@ def task_corpus(n_answers: int = 400, seed: int = 0) -> list[str]:
 def _prompt_texts() -> list[str]:
     """The prompting part's own task texts and chat-template words (the bulk of every prompt)."""
     from degusta_learn.render.grid import Grid
-    from degusta_learn.prompting.prompt import task_text
+    from degusta_learn.prompting.prompt import PROMPT_METHODS, task_text
 
     lines = ["User: Assistant: system You are a helpful assistant. user assistant",
              "These are the objects I have, one image per object type. Each object is marked with its "
              "object_reference_id.", "objects.jpg shows the images objects_cup.jpg, objects_fork.jpg, "
              "objects_knife.jpg side by side, each titled with its name:"]
-    for method in ("louma", "logma", "mouma", "mogma"):
+    for method in PROMPT_METHODS:
         for k in (0, 1, 2, 4):
             names = [f"final_state_{i}.jpg" for i in range(1, k + 1)]
             lines.append(task_text(method, names, "initial_state_1.jpg", Grid(8, 8), list(_TYPES)))

@@ -1,0 +1,154 @@
+"""Fine-tuned weights as plain folders: the last ones and the best ones, each written whole or not at all.
+
+A fine-tuning run folder holds two exports of the weights, both loadable without degusta:
+
+- `adapter/` (LoRA / QLoRA: `PeftModel.save_pretrained`) or `model/` (full: `save_pretrained` + the
+  processor): the LAST weights, rewritten at every checkpoint and at the end (equal to `last.ckpt`);
+- `best_adapter/` or `best_model/`: the weights `best.ckpt` holds, i.e. those of the validation with the
+  best `trainer.monitor` so far (`val/set_rmsd` in every shipped config). Rewritten each time the monitor
+  improves (`FinetuneModule.on_validation_end`, rank 0) and checked against `best.ckpt` at the end of the
+  run (`sync_best`: an export a kill interrupted is redone from `best.ckpt`). This is what the predict
+  configs load. Its `degusta_selection.json` says which validation it comes from (monitor, score, step).
+
+Every export also gets `degusta_finetune.json` (`finetune.train.write_meta`: how prompts were built).
+A folder is written into a hidden temp folder beside it and swapped in (`replace_folder`): a reader
+never sees a half-written adapter; a kill leaves the previous complete folder (or, in the instant between
+the two renames, a `.tmp-` folder that the next run's start removes and `sync_best` rewrites).
+
+Usage (what `finetune.train.run` and `FinetuneModule` do):
+    save_last(module, run_dir)            # adapter/ or model/
+    sync_best(module, run_dir)            # best_adapter/ or best_model/, from best.ckpt if it is stale
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+from degusta_learn.errors import DegustaError
+from degusta_learn.fileio import UMASK, atomic_write_json, read_json
+from degusta_learn.trainer import BEST, TMP_PREFIX
+
+LAST_DIRS = {True: "adapter", False: "model"}
+"""Folder of the last weights, by `module.lora`."""
+BEST_DIRS = {True: "best_adapter", False: "best_model"}
+"""Folder of the best weights (what `best.ckpt` holds), by `module.lora`."""
+SELECTION_FILE = "degusta_selection.json"
+"""In a best folder: {"monitor", "mode", "score", "step", "epoch", "checkpoint"} of the validation it comes from."""
+
+
+def replace_folder(out: Path, write: Callable[[Path], None]) -> Path:
+    """Run `write(tmp)` on a fresh hidden folder beside `out`, then swap it in for `out`.
+
+    On any error the temp folder is removed and `out` is left as it was.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f"{TMP_PREFIX}{out.name}."))
+    old = None
+    try:
+        os.chmod(tmp, 0o777 & ~UMASK)  # mkdtemp makes 0700 folders; outputs get the usual permissions
+        write(tmp)
+        if out.exists():
+            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f"{TMP_PREFIX}{out.name}.old."))
+            os.replace(out, old / out.name)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not out.exists() and (old / out.name).exists():
+            os.replace(old / out.name, out)  # put the previous folder back
+        raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    return out
+
+
+def write_weights(module, out: Path, selection: dict | None = None) -> Path:
+    """Write `module`'s current weights to `out` as a plain folder (adapter or model + processor), with the
+    fine-tuning metadata and, for a best export, `selection`; all or nothing (`replace_folder`)."""
+    from degusta_learn.finetune.lora import save_adapter
+    from degusta_learn.finetune.train import write_meta
+
+    def write(tmp: Path) -> None:
+        if module.lora:
+            save_adapter(module.model, tmp)
+        else:
+            module.model.save_pretrained(str(tmp))
+            module.processor.save_pretrained(str(tmp))
+        write_meta(tmp, module.cfg, module.processor)
+        if selection is not None:
+            atomic_write_json(tmp / SELECTION_FILE, selection)
+
+    return replace_folder(out, write)
+
+
+def save_last(module, run_dir: Path) -> Path:
+    """`adapter/` (LoRA) or `model/` (full) from the module's current weights."""
+    return write_weights(module, Path(run_dir) / LAST_DIRS[module.lora])
+
+
+def best_score(trainer) -> tuple[str, float] | None:
+    """(best checkpoint path, its monitor value) as the trainer's ModelCheckpoint holds them, or None."""
+    cb = getattr(trainer, "checkpoint_callback", None)
+    if cb is None or getattr(cb, "monitor", None) is None or cb.best_model_score is None or not cb.best_model_path:
+        return None
+    return str(cb.best_model_path), float(cb.best_model_score)
+
+
+def selection_record(module, score: float, step: int, epoch: int) -> dict:
+    t = module.cfg.trainer
+    return {"monitor": t.monitor, "mode": t.monitor_mode, "score": score, "step": step, "epoch": epoch,
+            "checkpoint": BEST}
+
+
+def save_best(module, run_dir: Path, score: float) -> Path:
+    """`best_adapter/` or `best_model/` from the module's current weights, which `best.ckpt` has just saved."""
+    record = selection_record(module, score, int(module.global_step), int(module.current_epoch))
+    return write_weights(module, Path(run_dir) / BEST_DIRS[module.lora], record)
+
+
+def exported_step(folder: Path) -> int | None:
+    """The training step a best folder was exported at (None: no readable selection record)."""
+    with contextlib.suppress(Exception):
+        return int(read_json(Path(folder) / SELECTION_FILE)["step"])
+    return None
+
+
+def sync_best(module, run_dir: Path) -> Path | None:
+    """Make the best folder hold `best.ckpt`'s weights: re-export from `best.ckpt` when the folder is missing
+    or from another step (an export a kill interrupted). Loads those weights into `module` (call it last).
+    Returns the best folder, or None when the run has no `best.ckpt` (`trainer.monitor: null`)."""
+    import torch
+
+    run_dir = Path(run_dir)
+    best, out = run_dir / BEST, run_dir / BEST_DIRS[module.lora]
+    if not best.is_file():
+        return None
+    ckpt = torch.load(best, map_location="cpu", weights_only=True, mmap=True)
+    step = int(ckpt["global_step"])
+    if exported_step(out) == step and out.is_dir():
+        return out
+    state = ckpt["state_dict"]
+    needed = {f"model.{n}" for n, p in module.model.named_parameters() if p.requires_grad or not module.lora}
+    lacking, extra = needed - state.keys(), state.keys() - module.state_dict().keys()
+    if lacking or extra:
+        raise DegustaError(f"{best}: its weights do not fit this run's model (lacking {sorted(lacking)[:2]}, "
+                           f"unknown {sorted(extra)[:2]}); delete it or use another trainer.run_name")
+    module.load_state_dict(state, strict=False)
+    record = selection_record(module, checkpoint_score(ckpt), step, int(ckpt.get("epoch", -1)))
+    return write_weights(module, out, record)
+
+
+def checkpoint_score(ckpt: dict) -> float:
+    """The monitor value a Lightning checkpoint was saved with as best (nan if it records none)."""
+    for key, state in (ckpt.get("callbacks") or {}).items():
+        if str(key).startswith("ModelCheckpoint") and isinstance(state, dict):
+            score = state.get("best_model_score")
+            if score is not None:
+                return float(score)
+    return float("nan")
