@@ -91,6 +91,28 @@ def test_answers_are_what_the_named_image_shows():
             assert covered == {it.id for it in items}  # every object of the scene has dense labels
 
 
+def test_locate_answers_the_named_objects_of_the_named_scene_in_the_order_asked():
+    ds = examples(n=24, block=1, mix=TaskMix(lists=0, describe=0, gomo=0, locate=1, locate_objects=3,
+                                             scenes=[1, 1, 1, 1]))
+    for i in range(len(ds)):
+        ex = ds[i]
+        assert ex.meta["task"] == "locate" and len(ex.meta["cell_labels"]) == len(ex.prompt.images)
+        question = ex.prompt.parts[-1]
+        name = question.split("Where are these objects in ")[1].split(":")[0]
+        asked = [(t, int(oid)) for t, oid in
+                 (chunk.split(" with object_reference_id ") for chunk in
+                  question.split(": ", 1)[1].split("?")[0].removeprefix("the ").split(", the "))]
+        items = parse_answer(ex.answer, "grid", CATALOG, GRID)
+        assert [(it.type, it.id) for it in items] == asked and 1 <= len(asked) <= 3
+        labelled = ex.meta["cell_labels"][[p.name for p in ex.prompt.images].index(name)]
+        for it in items:  # the cells answered are the cells the named scene's dense labels put that object in
+            assert {GRID.cells[k] for k, objects in enumerate(labelled) if it.id in {o for o, _ in objects}} == set(it.cells)
+    perfect = summarize([score_answer(ds[i], ds[i].answer, CATALOG, GRID) for i in range(len(ds))])
+    assert perfect["cells_exact"] == 1.0 and perfect["n_locate"] == len(ds)
+    with pytest.raises(DegustaError, match="data.mix.locate_objects"):
+        TaskMix(locate_objects=0)
+
+
 def test_gomo_sheet_marks_the_asked_position():
     ds = examples(n=40, block=1, mix=TaskMix(lists=0, describe=0, gomo=1))
     ex = ds[0]

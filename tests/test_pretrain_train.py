@@ -11,7 +11,7 @@ import torch
 from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
-from degusta_learn.finetune.pretrain.dense import DenseHead, DenseLabels, projector_of
+from degusta_learn.finetune.pretrain.dense import DenseHead, DenseLabels, OracleTeacher, OracleTokens, projector_of
 from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
 from degusta_learn.finetune.pretrain.train import PretrainConfig
 from degusta_learn.methods import run_train
@@ -20,7 +20,7 @@ from degusta_learn.scene import default_catalog, default_tables
 
 CONFIG = Path(__file__).parent.parent / "configs" / "pretrain_tiny_vlm_cpu.yaml"
 TINY = ["model.vision_channels=[8,8,16,16]", "model.vision_stem=8", "model.text_hidden=32", "model.text_layers=1",
-        "model.text_heads=2", "model.text_kv_heads=1", "model.text_intermediate=64", "model.vocab_size=600"]
+        "model.text_heads=2", "model.text_kv_heads=1", "model.text_intermediate=64", "model.vocab_size=2048"]
 
 
 def _overrides(tmp_path: Path, steps: int) -> list[str]:
@@ -37,7 +37,8 @@ def test_shipped_pretrain_config_loads_and_is_checked():
     with pytest.raises(DegustaError, match="model.vision_channels"):
         load_config(PretrainConfig, CONFIG, ["model.vision_channels=[8,8]"])
     with pytest.raises(DegustaError, match="data.mix"):
-        load_config(PretrainConfig, CONFIG, ["data.mix.lists=0", "data.mix.describe=0", "data.mix.gomo=0"])
+        load_config(PretrainConfig, CONFIG, ["data.mix.lists=0", "data.mix.describe=0", "data.mix.gomo=0",
+                                             "data.mix.locate=0"])
 
 
 def test_images_too_coarse_for_the_grid_are_refused(tmp_path):
@@ -63,6 +64,78 @@ def test_dense_head_trains_the_tokens_the_decoder_sees():
     loss.backward()
     assert torch.isfinite(loss) and tokens.grad.abs().sum() > 0
     assert head.loss(None, targets, keep).item() == 0.0  # nothing captured: no signal, no crash
+
+
+def _tiny_base():
+    return build_base(BaseArchitecture(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=1,
+                                       text_heads=2, text_kv_heads=1, text_intermediate=64, vocab_size=2048))
+
+
+def test_oracle_teacher_feeds_the_decoder_perfect_image_tokens_then_lets_go():
+    model, processor = _tiny_base()
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    ds = PerceptionExamples(catalog, tables, Grid(8, 8), 256, 0, 8, TaskMix(objects_sheet=1.0), block=1)
+    exs = [ds[i] for i in range(4)]
+    ids = OracleTokens(catalog, processor.tokenizer, Grid(8, 8))(exs)
+    _, keep = DenseLabels(catalog, 8)(exs)
+    assert not keep.all() and ids.shape[:2] == (int(keep.sum()), 64)  # object sheets have no oracle
+    tok = processor.tokenizer
+    first = next(labels for ex in exs for labels in ex.meta["cell_labels"] if labels is not None)
+    k, objects = next((k, objects) for k, objects in enumerate(first) if objects)
+    oid, direction = objects[0]
+    expect = [tok.convert_tokens_to_ids(t) for t in (Grid(8, 8).cells[k], catalog[oid].type, str(oid), direction)]
+    assert ids[0, k, :4].tolist() == expect and ids[0, k, 3 * len(objects) + 1:].eq(-1).all()
+    teacher = OracleTeacher(model.get_input_embeddings(), steps=10)
+    teacher.ids, teacher.keep = ids, keep
+    tokens = torch.randn(keep.numel(), 64, 32, requires_grad=True)
+    swapped = teacher.replace(tokens, step=0)  # probability 1: every labelled image is its oracle sum
+    assert torch.allclose(swapped[keep], teacher.oracle()) and torch.equal(swapped[~keep], tokens[~keep])
+    assert teacher.probability(5) == 0.5 and torch.equal(teacher.replace(tokens, step=10), tokens)
+    pull = teacher.pull(tokens)
+    pull.backward()
+    assert pull > 0 and tokens.grad.abs().sum() > 0 and model.get_input_embeddings().weight.grad is None
+    assert teacher.pull(swapped.detach()) < 1e-9  # tokens equal to their oracle sums: nothing to pull
+
+
+def test_class_init_gives_rare_answer_tokens_a_shared_direction():
+    from degusta_learn.finetune.pretrain.base import init_token_classes, token_classes
+
+    def mean_cosine(model, ids):
+        rows = torch.nn.functional.normalize(model.get_input_embeddings().weight[ids], dim=1)
+        sim = rows @ rows.T
+        return float((sim.sum() - sim.diagonal().sum()) / (len(ids) * (len(ids) - 1)))
+
+    model, processor = build_base(BaseArchitecture(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32,
+                                                   text_layers=1, text_heads=2, text_kv_heads=1, text_intermediate=64,
+                                                   vocab_size=2048, class_init=0.0))
+    types, numbers, cells, directions = token_classes(processor.tokenizer)
+    assert len(types) == 5 and len(numbers) == 256 and len(cells) == 144 and len(directions) == 8
+    assert abs(mean_cosine(model, numbers)) < 0.1  # plain random init: unrelated
+    init_token_classes(model, processor.tokenizer, 1.0)  # what build_base does with model.class_init 1
+    assert mean_cosine(model, numbers) > 0.3 and mean_cosine(model, cells) > 0.3
+    with pytest.raises(DegustaError, match="model.class_init"):
+        BaseArchitecture(class_init=-1)
+
+
+def test_oracle_teacher_refuses_a_tokenizer_that_splits_cells():
+    class Splitting:  # a byte-level tokenizer, as the tiny test models' are
+        def encode(self, text, add_special_tokens=False):
+            return list(text.encode())
+
+    with pytest.raises(DegustaError, match="data.teacher_steps: the tokenizer splits 'A1' into 2 tokens"):
+        OracleTokens(default_catalog(), Splitting(), Grid(8, 8))
+
+
+def test_a_tokenizer_too_small_for_the_teacher_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(DegustaError, match="data.teacher_steps: the tokenizer splits"):
+        run_train(CONFIG, _overrides(tmp_path, 1) + ["model.vocab_size=600", "data.teacher_steps=10"])
+    assert not (tmp_path / "runs" / "p" / "init").exists()
+
+
+def test_teacher_needs_one_token_per_cell():
+    with pytest.raises(DegustaError, match="data.teacher_steps: the dense loss and the oracle teacher"):
+        load_config(PretrainConfig, CONFIG, ["data.grid.rows=6", "data.grid.cols=6", "data.dense_weight=0",
+                                             "data.teacher_steps=10"])
 
 
 @pytest.mark.slow
@@ -93,3 +166,17 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
     run_train(CONFIG, _overrides(tmp_path, 4))
     assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 4
     assert json.loads((out / "degusta_base.json").read_text())["training"]["steps"] == 4
+
+
+def test_mimetic_attention_and_tied_embeddings():
+    arch = dict(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=1, text_heads=2,
+                text_kv_heads=1, text_intermediate=64, vocab_size=600)
+    model, _ = build_base(BaseArchitecture(**arch))
+    assert model.lm_head.weight is model.get_input_embeddings().weight
+    attn = model.model.language_model.layers[0].self_attn
+    q, k = attn.q_proj.weight[:16], attn.k_proj.weight  # head 0 of the one key/value group
+    assert torch.nn.functional.cosine_similarity(q.flatten(), k.flatten(), dim=0) > 0.9
+    ov = attn.o_proj.weight[:, :16] @ attn.v_proj.weight  # (hidden, hidden): copies what head 0 attends to
+    assert ov.diagonal().mean() > 5 * ov.fill_diagonal_(0).abs().mean()
+    with pytest.raises(DegustaError, match="model.attention_init"):
+        BaseArchitecture(attention_init="xavier")

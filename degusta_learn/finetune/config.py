@@ -38,7 +38,6 @@ DEFAULT_MONITOR = "val/set_rmsd"
 better); every unmatched object costs a fixed penalty, so a one-object answer cannot be selected as best."""
 HALF_DTYPES = ("bfloat16", "float16")
 HALF_TRUE_PRECISIONS = ("bf16-true", "16-true")
-GridConfig = Grid  # the `grid:` section is the render grid itself (render/grid.py), as in predict configs
 
 
 @dataclass

@@ -36,7 +36,8 @@ def answer_literals() -> list[str]:
 
 def perception_corpus(n: int = 300, seed: int = 0) -> list[str]:
     """Texts of the perception questions (pretrain/tasks.py) with varied names, types and numbers."""
-    from degusta_learn.finetune.pretrain.tasks import describe_question, gomo_question, list_question
+    from degusta_learn.finetune.pretrain.tasks import (describe_question, gomo_question, list_question,
+                                                      locate_question)
 
     rng = random.Random(seed)
     types = ["cup", "fork", "knife", "plate", "spoon"]
@@ -46,6 +47,7 @@ def perception_corpus(n: int = 300, seed: int = 0) -> list[str]:
         t = rng.choice(types)
         lines += [list_question(name, types), describe_question(name, t, rng.randint(0, 124)),
                   gomo_question(f"objects_{t}.jpg", t, rng.randint(4, 25), rng.randint(1, 5), rng.randint(1, 5)),
+                  locate_question(name, [(rng.choice(types), rng.randint(0, 124)) for _ in range(rng.randint(1, 8))]),
                   str(rng.randint(0, 124))]
     return lines
 

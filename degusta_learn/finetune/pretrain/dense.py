@@ -86,3 +86,88 @@ def projector_of(model):
             return getattr(inner, name)
     raise DegustaError("data.dense_weight: this model has no multi_modal_projector or connector to attach the "
                        "dense head to; set data.dense_weight: 0")
+
+
+class OracleTokens:
+    """Per image token, the token ids whose embeddings sum to a *perfect* image token (the oracle teacher).
+
+    Token k of a labelled image stands for grid cell k (`DenseLabels`); its oracle is the sum of the input
+    embeddings of that cell id and of the type, id and direction of every object covering it, e.g.
+    E["D5"] + E["fork"] + E["48"] + E["S"]: exactly the tokens an answer copies from it. Early in pretraining
+    the decoder sees these sums instead of the vision tower's tokens (`OracleTeacher`), so it learns to
+    retrieve and copy while the tower learns to produce them. Runs in DataLoader workers.
+    """
+
+    def __init__(self, catalog, tokenizer, grid):
+        from degusta_learn.render.grid import DIRECTIONS
+
+        def one(text: str) -> int:
+            ids = tokenizer.encode(text, add_special_tokens=False)
+            if len(ids) != 1:
+                raise DegustaError(f"data.teacher_steps: the tokenizer splits {text!r} into {len(ids)} tokens; the "
+                                   "oracle teacher needs cells, types, ids and directions as single tokens "
+                                   "(the domain tokenizer); set data.teacher_steps: 0")
+            return ids[0]
+
+        self.cell = [one(c) for c in grid.cells]
+        self.type = {o.id: one(o.type) for o in catalog}
+        self.id = {o.id: one(str(o.id)) for o in catalog}
+        self.dir = {d: one(d) for d in DIRECTIONS}
+
+    def __call__(self, examples) -> torch.Tensor | None:
+        """(n_labelled_images, cells, width) token ids, padded with -1; None when no image is labelled."""
+        rows = []
+        for ex in examples:
+            for labels in ex.meta.get("cell_labels", []):
+                if labels is None:
+                    continue
+                rows.append([[self.cell[k]] + [t for oid, d in objects for t in (self.type[oid], self.id[oid], self.dir[d])]
+                             for k, objects in enumerate(labels)])
+        if not rows:
+            return None
+        width = max(len(ids) for image in rows for ids in image)
+        return torch.tensor([[ids + [-1] * (width - len(ids)) for ids in image] for image in rows])
+
+
+class OracleTeacher:
+    """Replaces the projector's image tokens by their oracle sums with a probability that falls to 0.
+
+    `probability(step)` is 1 at step 0 and falls linearly to 0 at `steps`; per labelled image a coin decides.
+    `pull(tokens)` is the relative squared distance of the projector's tokens to the (detached) oracle sums,
+    the loss that teaches the vision tower to produce what the decoder learned to read.
+    """
+
+    def __init__(self, embeddings: nn.Embedding, steps: int):
+        self.embeddings, self.steps = embeddings, steps
+        self.ids: torch.Tensor | None = None
+        self.keep: torch.Tensor | None = None
+
+    def probability(self, step: int) -> float:
+        return max(0.0, 1.0 - step / self.steps) if self.steps > 0 else 0.0
+
+    def oracle(self) -> torch.Tensor:
+        ids = self.ids.to(self.embeddings.weight.device)
+        mask = (ids >= 0).unsqueeze(-1)
+        return (self.embeddings(ids.clamp(min=0)) * mask).sum(dim=2)  # (n_labelled, cells, hidden)
+
+    def replace(self, tokens: torch.Tensor, step: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """`tokens` (n_images, cells, hidden) with labelled images swapped for their oracle sums by coin flip."""
+        p = self.probability(step)
+        if p <= 0 or self.ids is None or self.keep is None or tokens.shape[0] != self.keep.numel() \
+                or tokens.shape[1] != self.ids.shape[1]:
+            return tokens
+        keep = self.keep.to(tokens.device)
+        swap = torch.zeros_like(keep)
+        swap[keep] = torch.rand(int(keep.sum()), generator=generator).to(tokens.device) < p
+        if not swap.any():
+            return tokens
+        out = tokens.clone()
+        out[swap] = self.oracle()[swap[keep]].to(tokens.dtype)
+        return out
+
+    def pull(self, tokens: torch.Tensor | None) -> torch.Tensor | None:
+        if tokens is None or self.ids is None or self.keep is None or tokens.shape[0] != self.keep.numel():
+            return None
+        target = self.oracle().detach().float()
+        got = tokens[self.keep.to(tokens.device)].float()
+        return F.mse_loss(got, target) / target.pow(2).mean().clamp(min=1e-12)

@@ -21,8 +21,7 @@ import shutil
 from pathlib import Path
 
 from degusta_learn.fileio import atomic_write_text, read_json
-
-BASE_META = "degusta_base.json"
+from degusta_learn.vlm.record import BASE_FILE as BASE_META  # the record's file name, defined once
 PERCEPTION = "perception.json"
 COMMAND = "degusta train --config configs/pretrain_tiny_vlm_cpu.yaml"
 
@@ -44,7 +43,9 @@ def training_curve(run_dir: Path) -> list[dict]:
 def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None) -> Path:
     """Save `model` + `processor` to `out` with degusta_base.json, pretrain_config.yaml and README.md."""
     from degusta_learn.config import to_dict
-    from degusta_learn.fileio import atomic_write_json
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.vlm.prompt_options import PromptOptions
+    from degusta_learn.vlm.record import BaseRecord, write_record
 
     out = Path(out)
     tmp = out.parent / f".{out.name}.partial"
@@ -55,19 +56,18 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     curve = training_curve(run_dir)
     arch = cfg.model
     n_params = sum(p.numel() for p in model.parameters())
-    atomic_write_json(tmp / BASE_META, {
-        "kind": "degusta_base", "architecture": dataclasses.asdict(arch), "parameters": n_params,
-        "image_size": arch.image_size, "render_size": arch.image_size, "tokens_per_image": arch.tokens_per_image,
-        "grid": {"rows": cfg.data.grid.rows, "cols": cfg.data.grid.cols},
+    write_record(tmp, BaseRecord(
+        architecture=dataclasses.asdict(arch), parameters=n_params, image_size=arch.image_size,
+        render_size=arch.image_size, tokens_per_image=arch.tokens_per_image,
+        grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
         # the prompt layout it saw in pretraining (object sheets composed into one image); the hf backend
         # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
-        "prompt": {"include": ["objects", "context", "target"], "compose": ["objects"]},
-        "catalog": cfg.dataset or "embedded default (125 objects, 5 tables)",
-        "training": {"command": COMMAND, "steps": steps, "batch_size": cfg.data.batch_size,
-                     "examples": steps * cfg.data.batch_size if steps else None, "lr": cfg.optim.lr,
-                     "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix)},
-        "validation_curve": curve,
-    })
+        prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
+        catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
+        training={"command": COMMAND, "steps": steps, "batch_size": cfg.data.batch_size,
+                  "examples": steps * cfg.data.batch_size if steps else None, "lr": cfg.optim.lr,
+                  "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix)},
+        validation_curve=curve))
     if (run_dir / "config.yaml").is_file():
         shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
     else:

@@ -2,7 +2,11 @@
 
 Training is `FinetuneModule`'s (answer-only next-token loss on every weight, its optimizer and schedule)
 plus, with `data.dense_weight > 0`, the dense auxiliary loss on the image tokens (`dense.py`), whose
-head is trained with the model and left out of the export.
+head is trained with the model and left out of the export, and, with `data.teacher_steps > 0`, the
+oracle teacher (`dense.OracleTeacher`): for the first steps the decoder mostly sees perfect image tokens
+(sums of the embeddings of what covers each cell) instead of the vision tower's, with a probability
+falling from 1 to 0 over `teacher_steps`, while `data.teacher_weight` pulls the tower's tokens towards
+those sums. Validation always sees the tower's tokens.
 Validation generates an answer to each held-out perception question — constrained to the answer grammar
 for `list` / `describe` questions, a few free tokens for `gomo` ones — scores it with `score.py` and
 logs val/loss, val/object_f1, val/cells_exact, val/cell_iou, val/direction, val/mark_id,
@@ -22,6 +26,7 @@ GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain toke
 def monitor_keys(cfg) -> set[str]:
     """Every metric PerceptionModule logs under a PretrainConfig `cfg` (what `trainer.monitor` may name)."""
     keys = {"train/loss"} | ({"train/dense"} if cfg.data.dense_weight > 0 else set())
+    keys |= {"train/pull", "train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
     if cfg.data.val_examples > 0:
         keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
                                       "mark_id", "parse_rate", "perception")}
@@ -38,23 +43,39 @@ class PerceptionModule(FinetuneModule):
         self.dense_weight = cfg.data.dense_weight
         self.dense = None
         self._tokens = None
-        if self.dense_weight > 0:
-            from degusta_learn.finetune.pretrain.dense import DenseHead, projector_of
+        self.teacher = None
+        from degusta_learn.finetune.pretrain.dense import DenseHead, OracleTeacher, projector_of
 
+        if self.dense_weight > 0:
             hidden = model.config.get_text_config().hidden_size
             self.dense = DenseHead(hidden, n_labels, side)
+        if cfg.data.teacher_steps > 0:
+            self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps)
+        if self.dense is not None or self.teacher is not None:
             projector_of(model).register_forward_hook(self._capture)
 
-    def _capture(self, module, inputs, output) -> None:
-        self._tokens = output  # (n_images, tokens, hidden): the image tokens the decoder sees
+    def _capture(self, module, inputs, output):
+        self._tokens = output  # (n_images, tokens, hidden): the vision tower's image tokens
+        if self.teacher is not None and self.training:
+            return self.teacher.replace(output, self.global_step)  # what the decoder sees instead
+        return None
 
     def training_step(self, batch, batch_idx):
         batch = dict(batch)
         targets, keep = batch.pop("dense_targets", None), batch.pop("dense_keep", None)
+        oracle_ids = batch.pop("oracle_ids", None)
+        if self.teacher is not None:
+            self.teacher.ids, self.teacher.keep = oracle_ids, keep
         self._tokens = None
         loss, n = lm_loss(self.model, batch)
         bs = batch["input_ids"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        if self.teacher is not None:
+            self.log("train/teacher_p", self.teacher.probability(self.global_step), batch_size=bs)
+            pull = self.teacher.pull(self._tokens)
+            if pull is not None:
+                self.log("train/pull", pull, batch_size=bs)
+                loss = loss + self.cfg.data.teacher_weight * pull
         if self.dense is None or keep is None:
             return loss
         dense = self.dense.loss(self._tokens, targets, keep)

@@ -4,14 +4,14 @@ Per answer (`score_answer`) and over many (`summarize`):
 
 - ``object_f1``: F1 of the predicted set of (type, id) pairs against the scene's, averaged over `list`
   answers (an unreadable answer predicts nothing: F1 0);
-- ``cells_exact``: among ground-truth objects whose (type, id) the answer names (`list` and `describe`),
+- ``cells_exact``: among ground-truth objects whose (type, id) the answer names (`list`, `describe`, `locate`),
   the fraction whose listed cells are exactly the footprint's cells; ``cells_exact_all`` counts the
   objects the answer missed as wrong too;
 - ``cell_iou``: the mean intersection-over-union of those cell sets (how close the misses are);
 - ``direction``: among the same named objects, the fraction with the right direction, plates left out
   (a round or square plate looks the same pointing N or S: its direction cannot be seen);
 - ``mark_id``: the fraction of `gomo` answers that are exactly the marked id;
-- ``parse_rate``: the fraction of `list` / `describe` answers `parse_answer` reads;
+- ``parse_rate``: the fraction of `list` / `describe` / `locate` answers `parse_answer` reads;
 - ``perception``: the mean of object_f1, cells_exact, direction and mark_id (what picks best.ckpt).
 
 Example:
@@ -63,7 +63,7 @@ def score_answer(example, text: str, catalog, grid) -> dict:
 def summarize(rows: list[dict]) -> dict:
     """Aggregate `score_answer` rows into the scores of the module docstring (nan where nothing counts)."""
     lists = [r for r in rows if r["task"] == "list"]
-    located = [r for r in rows if r["task"] in ("list", "describe")]
+    located = [r for r in rows if r["task"] in ("list", "describe", "locate")]
     marks = [r for r in rows if r["task"] == "gomo"]
     named = sum(r["named"] for r in located)
 
@@ -80,7 +80,8 @@ def summarize(rows: list[dict]) -> dict:
         "direction": ratio(sum(r["dir_ok"] for r in located), sum(r["dir_n"] for r in located)),
         "mark_id": ratio(sum(r["mark_ok"] for r in marks), len(marks)),
         "parse_rate": ratio(sum(r["parsed"] for r in located), len(located)),
-        "n_list": len(lists), "n_describe": len(located) - len(lists), "n_gomo": len(marks),
+        "n_list": len(lists), "n_describe": sum(r["task"] == "describe" for r in rows),
+        "n_locate": sum(r["task"] == "locate" for r in rows), "n_gomo": len(marks),
     }
     present = [out[k] for k in HEADLINE if not math.isnan(out[k])]
     out["perception"] = sum(present) / len(present) if present else math.nan

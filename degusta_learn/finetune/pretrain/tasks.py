@@ -12,6 +12,12 @@ prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
   objects in the grid answer format (type, id, the cells the footprint intersects, the direction).
 - ``describe``: one scene; "Find the cup with object_reference_id 17 in final_state_1.jpg ..." and the
   answer is a one-item list (its cells and direction).
+- ``locate``: like ``list`` (1-4 scenes, optional sheets and empty table) but the question names up to
+  `mix.locate_objects` objects of one scene by type and id, in random order: "Where are these objects in
+  final_state_2.jpg: the cup with object_reference_id 17, the fork with ...?" and the answer lists them
+  in the order asked. Every object is a retrieval (find that id in that image, copy its cells and
+  direction): many answers per rendered image, the skill the preference task needs to carry a context
+  arrangement onto a new table.
 - ``gomo``: one GoMO sheet of a random subset of one type's objects in random order, so a position on
   the sheet says nothing about an id without looking; "Which object_reference_id is marked on the
   object in row 2, column 3 ...?" and the answer is the integer.
@@ -37,7 +43,7 @@ from degusta_learn.finetune.data import Example
 from degusta_learn.finetune.pretrain.scenes import random_scene
 from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
-TASKS = ("list", "describe", "gomo")
+TASKS = ("list", "describe", "gomo", "locate")
 GRID_FORMAT = ("[{'type': object_type, 'id': object_reference_id, 'position': [grid_cell_ids], "
                "'cardinal_direction': direction}]")
 _DIRECTIONS_TEXT = "[N, NE, E, SE, S, SW, W, NW]"
@@ -53,6 +59,10 @@ class TaskMix:
     """Weight of `describe` questions (one object of one scene by type and id)."""
     gomo: float = 0.15
     """Weight of `gomo` questions (the id marked at a row and column of a GoMO sheet)."""
+    locate: float = 0.0
+    """Weight of `locate` questions (several objects of one named scene by type and id, answered in that order)."""
+    locate_objects: int = 8
+    """The most objects one `locate` question asks about (all of the scene's when it has fewer)."""
     scenes: list[float] = field(default_factory=lambda: [0.4, 0.2, 0.15, 0.25])
     """Relative weights of 1, 2, 3, 4 scenes in a `list` prompt."""
     reading_order: float = 0.5
@@ -63,17 +73,19 @@ class TaskMix:
     """Probability that a `list` prompt ends with an empty grid-marked table (initial_state_1.jpg)."""
 
     def __post_init__(self):
-        weights = [self.lists, self.describe, self.gomo]
+        weights = [self.lists, self.describe, self.gomo, self.locate]
         if any(w < 0 for w in weights) or sum(weights) <= 0:
             raise DegustaError("data.mix: task weights must be >= 0 and not all 0")
         if len(self.scenes) != 4 or any(w < 0 for w in self.scenes) or sum(self.scenes) <= 0:
             raise DegustaError("data.mix.scenes: expected 4 weights >= 0 (for 1, 2, 3, 4 scenes), not all 0")
+        if isinstance(self.locate_objects, bool) or not isinstance(self.locate_objects, int) or self.locate_objects < 1:
+            raise DegustaError(f"data.mix.locate_objects: expected an integer >= 1, got {self.locate_objects!r}")
         for key in ("reading_order", "objects_sheet", "empty_table"):
             if not 0 <= getattr(self, key) <= 1:
                 raise DegustaError(f"data.mix.{key}: expected a probability in [0, 1], got {getattr(self, key)}")
 
     def probabilities(self) -> np.ndarray:
-        w = np.array([self.lists, self.describe, self.gomo], dtype=float)
+        w = np.array([self.lists, self.describe, self.gomo, self.locate], dtype=float)
         return w / w.sum()
 
 
@@ -87,6 +99,12 @@ def list_question(name: str, types: list[str], reading: bool = False) -> str:
 def describe_question(name: str, type_: str, object_id: int) -> str:
     return (f"Where is the {type_} with object_reference_id {object_id} in {name}? Answer with a one-item list "
             f"{GRID_FORMAT}, 'position' being the grid cells it covers.")
+
+
+def locate_question(name: str, objects: list[tuple[str, int]]) -> str:
+    named = ", ".join(f"the {type_} with object_reference_id {object_id}" for type_, object_id in objects)
+    return (f"Where are these objects in {name}: {named}? Answer with a list {GRID_FORMAT} in the order asked, "
+            "'position' being the grid cells each covers.")
 
 
 def gomo_question(name: str, type_: str, n: int, row: int, col: int) -> str:
@@ -126,7 +144,7 @@ class PerceptionExamples:
         task = TASKS[int(rng.choice(len(TASKS), p=m.probabilities()))]
         k = 1 + int(rng.choice(4, p=np.asarray(m.scenes, float) / sum(m.scenes)))
         sheet, empty = bool(rng.random() < m.objects_sheet), bool(rng.random() < m.empty_table)
-        if task != "list":
+        if task not in ("list", "locate"):
             return task, 1, False, False
         return task, k, sheet, empty
 
@@ -135,7 +153,7 @@ class PerceptionExamples:
             raise IndexError(i)
         task, k, sheet, empty = self.shape_of(i)
         rng = np.random.default_rng([self.seed, 2, i])
-        build = {"list": self._list, "describe": self._describe, "gomo": self._gomo}[task]
+        build = {"list": self._list, "describe": self._describe, "gomo": self._gomo, "locate": self._locate}[task]
         parts, answer, meta = build(rng, k, sheet, empty)
         from degusta_learn.prompting import Prompt
 
@@ -177,7 +195,8 @@ class PerceptionExamples:
         truth = [{"type": it.type, "id": it.id, "cells": list(it.cells), "direction": it.direction} for it in items]
         return format_answer(items, "grid"), truth
 
-    def _list(self, rng, k: int, sheet: bool, empty: bool):
+    def _scenes(self, rng, k: int, sheet: bool, empty: bool):
+        """The parts of a prompt with k random scenes (see `list`), their cell labels and the scenes."""
         from degusta_learn.prompting import ImagePart
 
         parts: list = []
@@ -192,6 +211,10 @@ class PerceptionExamples:
             table = sorted(self.tables)[int(rng.integers(len(self.tables)))]
             parts += ["initial_state_1.jpg:", ImagePart("initial_state_1.jpg", self.renderer.table(table, self.grid))]
             labels.append(self.cell_labels(()))
+        return parts, labels, scenes
+
+    def _list(self, rng, k: int, sheet: bool, empty: bool):
+        parts, labels, scenes = self._scenes(rng, k, sheet, empty)
         asked = int(rng.integers(k))
         name = f"final_state_{asked + 1}.jpg"
         reading = bool(rng.random() < self.mix.reading_order)
@@ -202,6 +225,16 @@ class PerceptionExamples:
         answer, truth = self._truth(placements)
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels,
                                "order": "reading" if reading else "placement"}
+
+    def _locate(self, rng, k: int, sheet: bool, empty: bool):
+        parts, labels, scenes = self._scenes(rng, k, sheet, empty)
+        asked = int(rng.integers(k))
+        name = f"final_state_{asked + 1}.jpg"
+        placements = scenes[asked].placements
+        chosen = [placements[j] for j in rng.permutation(len(placements))[:self.mix.locate_objects]]
+        parts.append(locate_question(name, [(self.catalog[p.object].type, p.object) for p in chosen]))
+        answer, truth = self._truth(chosen)
+        return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels}
 
     def _object_sheets(self) -> list:
         from degusta_learn.prompting import ImagePart, Prompt

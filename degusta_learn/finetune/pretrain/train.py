@@ -23,20 +23,20 @@ from pathlib import Path
 
 from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.config import EvalConfig, GridConfig, OptimConfig
+from degusta_learn.finetune.config import EvalConfig
+from degusta_learn.optim import OptimConfig
+from degusta_learn.render.grid import Grid
 from degusta_learn.finetune.pretrain.base import OUTPUT_STRIDE, BaseArchitecture
 from degusta_learn.finetune.pretrain.tasks import TaskMix
 from degusta_learn.methods import TrainerSpec
 from degusta_learn.trainer import TrainerConfig
-
-BASE_META = "degusta_base.json"
 
 
 @dataclass
 class PretrainData:
     """The `data:` section: the perception examples and their batching."""
 
-    grid: GridConfig = field(default_factory=GridConfig)
+    grid: Grid = field(default_factory=Grid)
     """The labelled grid drawn over the scenes (the base learns this grid)."""
     mix: TaskMix = field(default_factory=TaskMix)
     """Which questions, how often."""
@@ -52,6 +52,11 @@ class PretrainData:
     """DataLoader worker processes rendering the scenes (0: in the main process)."""
     dense_weight: float = 0.05
     """Weight of the dense auxiliary loss on the image tokens (what covers each token, where it is); 0: off."""
+    teacher_steps: int = bounded(0, 0, 10_000_000)
+    """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
+    instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
+    teacher_weight: float = 1.0
+    """Weight of the pull of the tower's image tokens towards those oracle sums (while teacher_steps > 0)."""
 
     def __post_init__(self):
         for key in ("steps_per_epoch", "batch_size", "max_length"):
@@ -59,6 +64,8 @@ class PretrainData:
                 raise DegustaError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
         if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0:
             raise DegustaError("data.val_examples / data.num_workers / data.dense_weight: expected >= 0")
+        if self.teacher_steps < 0 or self.teacher_weight < 0:
+            raise DegustaError("data.teacher_steps / data.teacher_weight: expected >= 0")
 
 
 @dataclass
@@ -93,11 +100,12 @@ class PretrainConfig:
                                f"{self.model.tokens_per_side} image tokens, fewer than the grid's {need} cells per "
                                f"side; use at least {need * OUTPUT_STRIDE} px (or a coarser data.grid)")
         square = self.data.grid.rows == self.data.grid.cols == self.model.tokens_per_side
-        if self.data.dense_weight > 0 and not square:  # dense targets are per grid cell, one per image token
-            raise DegustaError(f"data.dense_weight: the dense loss needs one image token per grid cell, but "
+        for key in ("dense_weight", "teacher_steps"):  # dense targets and oracles are per grid cell, one per token
+            if getattr(self.data, key) > 0 and not square:
+                raise DegustaError(f"data.{key}: the dense loss and the oracle teacher need one image token per grid cell, but "
                                f"model.image_size {self.model.image_size} px gives {self.model.tokens_per_side} x "
                                f"{self.model.tokens_per_side} tokens for a {self.data.grid.rows} x "
-                               f"{self.data.grid.cols} grid; set data.dense_weight=0 or match them")
+                               f"{self.data.grid.cols} grid; set data.{key}=0 or match them")
 
 
 def catalog_and_tables(dataset: str | None):
@@ -111,14 +119,17 @@ def catalog_and_tables(dataset: str | None):
 
 
 class DenseCollate:
-    """The collator's batch plus the dense targets of its examples (`dense.DenseLabels`)."""
+    """The collator's batch plus the dense targets (`dense.DenseLabels`) and, given `oracle`, the oracle
+    token ids (`dense.OracleTokens`) of its examples."""
 
-    def __init__(self, collator, labels):
-        self.collator, self.labels = collator, labels
+    def __init__(self, collator, labels, oracle=None):
+        self.collator, self.labels, self.oracle = collator, labels, oracle
 
     def __call__(self, examples) -> dict:
         batch = self.collator(examples)
         batch["dense_targets"], batch["dense_keep"] = self.labels(examples)
+        if self.oracle is not None:
+            batch["oracle_ids"] = self.oracle(examples)
         return batch
 
 
@@ -138,8 +149,10 @@ class EpochSampler:
         return iter(range(self.epoch * self.n, (self.epoch + 1) * self.n))
 
 
-def initial_model(cfg: PretrainConfig, run_dir: Path) -> Path:
-    """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it)."""
+def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -> Path:
+    """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it).
+    With `data.teacher_steps`, the tokenizer is checked for the oracle teacher (given `catalog` and
+    `grid`) before anything is written."""
     from degusta_learn.fileio import atomic_write_json
     from degusta_learn.vlm.load import offline
     from degusta_learn.finetune.pretrain.base import build_base
@@ -149,6 +162,10 @@ def initial_model(cfg: PretrainConfig, run_dir: Path) -> Path:
         return init
     offline()
     model, processor = build_base(cfg.model, seed=cfg.seed)
+    if cfg.data.teacher_steps > 0 and catalog is not None and grid is not None:
+        from degusta_learn.finetune.pretrain.dense import OracleTokens
+
+        OracleTokens(catalog, processor.tokenizer, grid)  # refuses a tokenizer that splits cells or ids
     init.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(init))
     processor.save_pretrained(str(init))
@@ -165,7 +182,7 @@ def run(cfg: PretrainConfig) -> Path:
     from degusta_learn.vlm.load import load_vlm
     from degusta_learn.finetune.module import FinetuneData
     from degusta_learn.finetune.pretrain.export import export_base
-    from degusta_learn.finetune.pretrain.dense import DenseLabels
+    from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
     from degusta_learn.finetune.pretrain.module import PerceptionModule, monitor_keys
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
     from degusta_learn.render.grid import Grid
@@ -176,7 +193,8 @@ def run(cfg: PretrainConfig) -> Path:
         grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
         run_dir = cfg.trainer.path
         run_dir.mkdir(parents=True, exist_ok=True)
-        model, processor = load_vlm(str(initial_model(cfg, run_dir)), device="cpu", dtype="float32", key="model")
+        model, processor = load_vlm(str(initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
+                                    key="model")
         model.train()
         fmt = chat_format(model, processor)
         collator = Collator(processor, fmt, cfg.data.max_length, model.config.image_token_id)
@@ -189,7 +207,9 @@ def run(cfg: PretrainConfig) -> Path:
         val = make(cfg.seed + 1_000_003, d.val_examples, 1)
         labels = DenseLabels(catalog, side)
         module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
-        data = FinetuneData(train, val, DenseCollate(collator, labels) if d.dense_weight > 0 else collator,
+        oracle = OracleTokens(catalog, processor.tokenizer, grid) if d.teacher_steps > 0 else None
+        dense = d.dense_weight > 0 or oracle is not None
+        data = FinetuneData(train, val, DenseCollate(collator, labels, oracle) if dense else collator,
                             d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
                             val_collator=collator)
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
