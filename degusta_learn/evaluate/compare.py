@@ -41,6 +41,7 @@ from degusta_learn.config import bounded, load_config, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import METHOD_NAME, EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import rank_methods, summarize
+from degusta_learn.prompting.backends.base import backend_class
 from degusta_learn.fileio import atomic_write_json, file_sha256, refuse_overwriting_inputs, stat_tree
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
 from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
@@ -68,10 +69,6 @@ COMPARISON = OutputKind("comparison report", ("report.md", "report.html", "metri
 
 MAX_QUALITATIVE = 100
 """Most random qualitative episodes a comparison draws (each is one image per method)."""
-
-
-REMOTE_BACKENDS = ("openai", "anthropic", "gemini")
-"""Backends whose answers may cost money: their stale predictions are refused, never silently recomputed."""
 
 
 @dataclass
@@ -202,7 +199,9 @@ def run_fingerprint(entry: MethodEntry, overrides: list[str], ds_id: str, episod
     files: dict = {}
     config = _resolved(dataclasses.asdict(mcfg), files)
     backend = getattr(mcfg, "backend", None)
-    remote = getattr(backend, "name", None) in REMOTE_BACKENDS
+    # a backend whose answers may cost money (not local, as it declares): stale predictions are refused,
+    # never silently recomputed
+    remote = backend is not None and not backend_class(backend.name).is_local(backend)
     return {"config": _sha(config), "files": _sha(files), "dataset": ds_id,
             "episodes": _sha([e.to_json() for e in episodes])}, remote
 
