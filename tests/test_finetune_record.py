@@ -1,7 +1,7 @@
 """The fine-tune -> hf contract (vlm/record.py): one typed, versioned record, and the train/test leakage guard.
 
-Most tests need no model: the record is read and checked before any weights are used, so the runner tests
-stand the model loader in with a stub (`no_weights`). One slow test runs the same guard with the tiny model.
+Most tests need no model: the record is read and checked before the model loads, so the runner tests replace
+the model loader with one that fails the test (`no_load`). One slow test runs the same guard with the tiny model.
 """
 
 from __future__ import annotations
@@ -56,13 +56,15 @@ def adapter(naturalistic_ids, tmp_path_factory) -> Path:
 
 
 @pytest.fixture
-def no_weights(monkeypatch):
-    """The hf backend without model weights (its record is read and checked before any generation)."""
-    from degusta_learn.vlm import inputs, load
+def no_load(monkeypatch):
+    """Any model load fails the test: the guard must refuse before a (possibly 2B-parameter) model loads."""
+    from degusta_learn.vlm import load
 
-    monkeypatch.setattr(load, "load_vlm", lambda *a, **k: (SimpleNamespace(config=None), SimpleNamespace()))
-    monkeypatch.setattr(inputs, "set_image_budget", lambda *a, **k: None)
-    monkeypatch.setattr(inputs, "check_grid_resolution", lambda *a, **k: None)
+    def refuse(*a, **k):
+        raise AssertionError("the model was loaded before the leakage guard ran")
+
+    monkeypatch.setattr(load, "load_vlm", refuse)
+    monkeypatch.setattr(load, "load_processor", refuse)
 
 
 def _predict(data: Path, model: Path, out: Path, *keys: str) -> Path:
@@ -146,7 +148,7 @@ def test_check_prediction_lets_unseen_participants_through(adapter, naturalistic
     record.check_prediction("another dataset", {"q001", "q002"}, 128)  # other ids: other people
 
 
-def test_predicting_with_another_split_seed_is_refused(adapter, naturalistic_ids, tmp_path, no_weights):
+def test_predicting_with_another_split_seed_is_refused(adapter, naturalistic_ids, tmp_path, no_load):
     # 27 of the 40 test participants of seed 1 are training participants of seed 0 (issue 15, item 3)
     with pytest.raises(DegustaError, match=r"^seed: 27 of the 40 participants predicted here are in this model's "
                                            r"training split \(.*: trained with seed 0 on this dataset\); "
@@ -155,20 +157,20 @@ def test_predicting_with_another_split_seed_is_refused(adapter, naturalistic_ids
     assert not (tmp_path / "predictions.jsonl").exists()
 
 
-def test_predicting_on_the_validation_participants_is_refused(adapter, naturalistic_ids, tmp_path, no_weights):
+def test_predicting_on_the_validation_participants_is_refused(adapter, naturalistic_ids, tmp_path, no_load):
     with pytest.raises(DegustaError, match=r"^seed: 20 of the 20 participants .* validation participants .* "
                                            r"chose its checkpoint"):
         _predict(naturalistic_ids, adapter, tmp_path, "split=val")
 
 
-def test_another_dataset_with_the_same_participant_ids_is_refused(adapter, tmp_path, no_weights):
+def test_another_dataset_with_the_same_participant_ids_is_refused(adapter, tmp_path, no_load):
     other = save_dataset(make_small_dataset(n_participants=199, seed=1), tmp_path / "other")
     with pytest.raises(DegustaError, match=r"^dataset: 27 of the 40 participant ids predicted here are training "
                                            r"participants of this model .*, trained with seed 0 on another dataset"):
         _predict(other, adapter, tmp_path, "seed=1")
 
 
-def test_images_are_rendered_at_the_recorded_render_size(adapter, naturalistic_ids, tmp_path, no_weights):
+def test_images_are_rendered_at_the_recorded_render_size(adapter, naturalistic_ids, tmp_path, no_load):
     with pytest.raises(DegustaError, match=r"^image_size: this model was trained on images rendered at 128 px "
                                            r"\(data.render_size in .*degusta_finetune.json\), the predict config "
                                            r"renders them at 224 px; set image_size=128"):

@@ -320,9 +320,9 @@ class ZeroShotRun:
 
     def run(self, episodes: list[Episode]) -> list[Prediction]:
         c = self.cfg
+        # before the model loads: hf refuses train/test leakage and a render size other than the trained one
+        backend_class(c.backend.name).check_run(c.backend, self.ds, episodes, c.image_size)
         self.backend = make_backend(c.backend, self.grid, self.ds.catalog)
-        if hasattr(self.backend, "check_run"):  # hf: no train/test leakage, the render size it was trained at
-            self.backend.check_run(self.ds, episodes, c.image_size)
         if c.backend.max_tokens == "auto":  # hf: what the dataset's answers take with the model's tokenizer
             c.backend.max_tokens = self.backend.token_budget(self.ds, c.method)["max_new_tokens"]
         self.cache = ResponseCache(self.cache_path) if self.cache_path and self.cacheable else None

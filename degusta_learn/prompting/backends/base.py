@@ -178,6 +178,11 @@ class Backend:
         return costs.prompt_tokens(prompt, lambda w, h: cls.image_tokens(w, h, cfg))
 
     @classmethod
+    def check_run(cls, cfg: BackendConfig, ds, episodes: list, image_size: int) -> None:
+        """Refuse, before anything is built or loaded, a run this backend must not serve (one line); the hf
+        backend refuses episodes of participants its fine-tuned model was trained or validated on."""
+
+    @classmethod
     def price(cls, cfg: BackendConfig, prices: dict[str, Any]) -> tuple[float, float] | None:
         """USD per 1M (input, output) tokens of a request (None: free or unknown); `prices` overrides the table."""
         if cls.is_local(cfg) and cfg.model not in prices:

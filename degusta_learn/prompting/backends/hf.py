@@ -127,14 +127,17 @@ class HFBackend(Backend):
             self._grammars[kind] = AnswerGrammar(kind, self.catalog, self.grid)
         return self._grammars[kind]
 
-    def check_run(self, ds, episodes, image_size: int) -> None:
-        """Before predicting `episodes` of `ds` with images rendered at `image_size` px: refuse participants
-        the model was trained or validated on, and another render size than in training (one line each)."""
+    @classmethod
+    def check_run(cls, cfg: HFConfig, ds, episodes: list, image_size: int) -> None:
+        """Before the model loads, predicting `episodes` of `ds` with images rendered at `image_size` px: refuse
+        participants the model was trained or validated on, and another render size than in training."""
         from degusta_learn.scene.dataset import dataset_identity
+        from degusta_learn.vlm.record import locate_record, read_record
 
-        if self.record is not None:
-            self.record.check_prediction(dataset_identity(ds), {e.participant for e in episodes}, image_size,
-                                         where=str(self.record_path))
+        path = locate_record(cfg.adapter, cfg.model)
+        if path is not None:
+            read_record(path).check_prediction(dataset_identity(ds), {e.participant for e in episodes}, image_size,
+                                               where=str(path))
 
     def token_budget(self, ds, method: str) -> dict:
         """`max_tokens: auto`: the budget that fits every ground-truth answer of `ds` (`answer_token_budget`)."""
