@@ -29,9 +29,10 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from typing import Literal
 from urllib.parse import urlparse
 
-from degusta_learn.errors import DegustaError
+from degusta_learn.config import check_choices
 from degusta_learn.prompting import costs
 from degusta_learn.prompting.answers import STRUCTURED_NAME
 from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
@@ -44,15 +45,14 @@ class OpenAIConfig(RemoteConfig):
     """The `backend:` keys of the openai backend (GPT-4o or any OpenAI-compatible server)."""
 
     name: str = "openai"
-    detail: str | None = None
+    detail: Literal["low", "high", "auto"] | None = None
     """Image detail "low" (85 tokens an image), "high" or "auto" (unset: the server default)."""
 
     answer_keys = ("base_url", "detail")
 
     def __post_init__(self):
         super().__post_init__()
-        if self.detail not in (None, "low", "high", "auto"):
-            raise DegustaError(f"backend.detail: expected low, high or auto, got {self.detail!r}")
+        check_choices(self, "backend")
 
 
 def split_usage(total: int | None, k: int) -> list[int | None]:
