@@ -71,7 +71,11 @@ def test_train_resume_and_predict_with_the_hf_backend(tmp_path):
     with pytest.raises(DegustaError, match="grid"):  # the adapter knows the grid it was trained on
         run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [
             f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred2' / 'p.jsonl'}",
-            f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}", "grid.rows=6"])
+            f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}", "image_size=128", "grid.rows=6"])
+    with pytest.raises(DegustaError, match="image_size: this model was trained on images rendered at 128 px"):
+        run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [  # refused before the model loads
+            f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred3' / 'p.jsonl'}",
+            f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}"])
 
 
 def test_bad_finetune_inputs_name_the_key(tmp_path):
