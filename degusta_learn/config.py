@@ -232,10 +232,15 @@ def check_choices(obj: Any, section: str) -> None:
     """Check every `Literal` field of dataclass `obj` against its choices, naming `section.field`: the loader
     does this for YAML and `--set`; a dataclass built in Python calls this from its `__post_init__`."""
     for name, tp in typing.get_type_hints(type(obj)).items():
-        if get_origin(tp) is Literal and hasattr(obj, name):
-            choices, value = get_args(tp), getattr(obj, name)
-            if not any(type(value) is type(c) and value == c for c in choices):
-                raise DegustaError(f"{section + '.' if section else ''}{name}: expected one of {list(choices)}, got {_show(value)}")
+        args = get_args(tp) if get_origin(tp) in (Union, types.UnionType) else (tp,)
+        if not hasattr(obj, name) or not all(get_origin(a) is Literal or a is type(None) for a in args):
+            continue  # only Literal[...] and Literal[...] | None fields
+        value = getattr(obj, name)
+        choices = [c for a in args if a is not type(None) for c in get_args(a)]
+        if not (value is None and type(None) in args) and not any(type(value) is type(c) and value == c
+                                                                    for c in choices):
+            where = f"{section}.{name}" if section else name
+            raise DegustaError(f"{where}: expected one of {choices}, got {_show(value)}")
 
 
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix: str = "") -> T:

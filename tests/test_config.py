@@ -64,3 +64,15 @@ def _umask():
     m = os.umask(0)
     os.umask(m)
     return m
+
+
+def test_choices_of_dataclasses_built_in_python_are_checked_like_the_loader_does():
+    """`check_choices`: a `Literal` (or `Literal | None`) field built in Python gets the loader's one line."""
+    from degusta_learn.finetune.lora import LoraConfig
+    from degusta_learn.prompting.backends.openai import OpenAIConfig
+
+    with pytest.raises(DegustaError, match=r"^lora.mode: expected one of \['lora', 'qlora', 'full'\], got 'qlora4'"):
+        LoraConfig(mode="qlora4")
+    with pytest.raises(DegustaError, match=r"^backend.detail: expected one of \['low', 'high', 'auto'\]"):
+        OpenAIConfig(detail="medium")
+    assert OpenAIConfig(detail=None).detail is None and OpenAIConfig(detail="low").detail == "low"
