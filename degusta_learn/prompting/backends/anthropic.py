@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.answers import STRUCTURED_KEY, STRUCTURED_NAME
-from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
-from degusta_learn.prompting.backends.remote import RemoteConfig, is_loopback, retry_after
+from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig, retry_after
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -48,7 +48,7 @@ def _import():
     return anthropic
 
 
-class AnthropicBackend(Backend):
+class AnthropicBackend(RemoteBackend):
     """Claude via the Messages API; n separate requests."""
 
     name = "anthropic"
@@ -57,10 +57,6 @@ class AnthropicBackend(Backend):
     cacheable = True
     takes_schema = True  # a forced tool whose input schema is the answer's
     key_env = "ANTHROPIC_API_KEY"
-
-    @classmethod
-    def is_local(cls, cfg: AnthropicConfig) -> bool:
-        return is_loopback(cfg.base_url)  # a proxy on this machine: not priced unless `prices` names the model
 
     @classmethod
     def image_tokens(cls, width: int, height: int, cfg: AnthropicConfig) -> int:

@@ -20,8 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
-from degusta_learn.prompting.backends.remote import RemoteConfig, is_loopback
+from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -47,7 +47,7 @@ def _transient(e: Exception) -> bool:
     return any(k in n for n in names for k in ("Timeout", "TransportError", "ConnectError", "NetworkError"))
 
 
-class GeminiBackend(Backend):
+class GeminiBackend(RemoteBackend):
     """Gemini via `client.models.generate_content`; n separate requests."""
 
     name = "gemini"
@@ -56,10 +56,6 @@ class GeminiBackend(Backend):
     cacheable = True
     takes_schema = True  # response_mime_type + response_schema
     key_env = "GEMINI_API_KEY"
-
-    @classmethod
-    def is_local(cls, cfg: GeminiConfig) -> bool:
-        return is_loopback(cfg.base_url)  # a proxy on this machine: not priced unless `prices` names the model
 
     @classmethod
     def image_tokens(cls, width: int, height: int, cfg: GeminiConfig) -> int:

@@ -35,8 +35,8 @@ from urllib.parse import urlparse
 from degusta_learn.config import check_choices
 from degusta_learn.prompting import costs
 from degusta_learn.prompting.answers import STRUCTURED_NAME
-from degusta_learn.prompting.backends.base import AnswerSchemas, Backend, BackendError, Completion, api_key
-from degusta_learn.prompting.backends.remote import RemoteConfig, is_loopback, retry_after
+from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
+from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig, retry_after
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -62,7 +62,7 @@ def split_usage(total: int | None, k: int) -> list[int | None]:
     return [total // k + (1 if i < total % k else 0) for i in range(k)]
 
 
-class OpenAIBackend(Backend):
+class OpenAIBackend(RemoteBackend):
     """Chat completions with images as data URLs; `n` samples per request."""
 
     name = "openai"
@@ -71,10 +71,6 @@ class OpenAIBackend(Backend):
     cacheable = True
     takes_schema = True  # response_format json_schema
     key_env = "OPENAI_API_KEY"
-
-    @classmethod
-    def is_local(cls, cfg: OpenAIConfig) -> bool:
-        return is_loopback(cfg.base_url)
 
     @classmethod
     def image_tokens(cls, width: int, height: int, cfg: OpenAIConfig) -> int:

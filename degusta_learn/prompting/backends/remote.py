@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from urllib.parse import urlparse
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.backends.base import BackendConfig
+from degusta_learn.prompting.backends.base import Backend, BackendConfig
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1", "0.0.0.0")
 
@@ -46,6 +46,15 @@ class RemoteConfig(BackendConfig):
 def is_loopback(base_url: str | None) -> bool:
     """Whether `base_url` is a server on this machine."""
     return bool(base_url) and (urlparse(base_url).hostname or "") in LOCAL_HOSTS
+
+
+class RemoteBackend(Backend):
+    """A backend reached over HTTP at `base_url`: local (free unless `prices` names the model) when that is a
+    server or proxy on this machine, a paid service otherwise."""
+
+    @classmethod
+    def is_local(cls, cfg: RemoteConfig) -> bool:
+        return is_loopback(cfg.base_url)
 
 
 def retry_after(headers) -> float | None:
