@@ -157,6 +157,15 @@ def test_predicting_with_another_split_seed_is_refused(adapter, naturalistic_ids
     assert not (tmp_path / "predictions.jsonl").exists()
 
 
+def test_a_dry_run_is_refused_like_the_real_run(adapter, naturalistic_ids, tmp_path, no_load, capsys):
+    # `degusta predict --dry-run` must not estimate (and bless) a run that the real run refuses
+    with pytest.raises(DegustaError, match=r"^seed: 27 of the 40 participants predicted here"):
+        run_predict(None, ["method=mogma", f"dataset={naturalistic_ids}", f"out={tmp_path / 'p.jsonl'}",
+                           "context=2", "backend.name=hf", f"backend.model={adapter}", "seed=1",
+                           "image_size=128"], dry_run=True)
+    assert "tokens" not in capsys.readouterr().out and not (tmp_path / "p.jsonl").exists()
+
+
 def test_predicting_on_the_validation_participants_is_refused(adapter, naturalistic_ids, tmp_path, no_load):
     with pytest.raises(DegustaError, match=r"^seed: 20 of the 20 participants .* validation participants .* "
                                            r"chose its checkpoint"):

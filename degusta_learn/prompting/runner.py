@@ -441,7 +441,8 @@ class ZeroShotRun:
 def run_zeroshot(cfg: ZeroShotConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction] | None:
     """The MethodSpec entry point; returns None for a dry run (run_predict then writes nothing)."""
     run = ZeroShotRun(cfg, ds)
-    if cfg.dry_run:
+    if cfg.dry_run:  # a dry run refuses what the real run would refuse (leakage, render size) before estimating
+        backend_class(cfg.backend.name).check_run(cfg.backend, ds, episodes, cfg.image_size)
         print_estimate(cfg, estimate_run(run, episodes))
         return None
     return run.run(episodes)
