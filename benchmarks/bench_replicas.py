@@ -191,7 +191,9 @@ def main(argv=None) -> int:
     for name in args.names:
         replica = args.out / name
         ref = args.reference if (args.reference and REPLICAS[name]["family"] == "idefics3") else None
-        if not (replica / "degusta_replica.json").is_file():
+        record = replica / "degusta_replica.json"
+        # a config-only replica (built for dry runs: weights false) cannot train: rebuild it with weights
+        if not record.is_file() or (not args.skip_train and not json.loads(record.read_text()).get("weights", True)):
             t = time.perf_counter()
             build_replica(name, replica, reference_dir=ref)
             print(f"{name}: built in {time.perf_counter() - t:.0f} s", flush=True)
@@ -229,6 +231,8 @@ def report(name: str, res: dict) -> None:
     if tr:
         if tr.get("error"):
             print(f"  FAILED after {len(tr['steps'])} steps: {tr['error']}")
+        if "params_trainable" not in tr:  # failed before the first step: nothing else was measured
+            return
         print(f"  params: {tr['params_trainable']:,} trainable of {tr['params_total']:,}; batch {tr['batch_tokens']}")
         print(f"  seconds per step: {', '.join(f'{s:.1f}' for s in tr['steps'])}; wall {tr['wall_s']:.0f} s")
         print(f"  RSS: start {tr['rss_start'] / GiB:.2f} GiB, before training {tr['rss_before_train'] / GiB:.2f} GiB, "

@@ -81,6 +81,32 @@ def test_lora_with_gradient_checkpointing_gives_nonzero_grads(kind):
     assert grads and all(g is not None and g.abs().sum() > 0 for g in grads.values())
 
 
+@pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
+def test_a_frozen_vision_tower_builds_no_autograd_graph_under_checkpointing(kind):
+    """transformers' enable_input_require_grads also hooks the vision tower's patch embedding: a frozen tower
+    was back-propagated through (the Qwen2-VL-2B replica's first step ran out of 24 GiB). Only the text
+    embeddings' output requires grad, unless the tower itself has trainable (LoRA) weights."""
+    seen = {}
+    for vision_targets, tower_grad in (([], False), (["fc1"], True)):
+        model, processor = load(kind)
+        batch = _batch(kind, model, processor, n=1)
+        peft_model = apply_lora(model, LoraConfig(r=4, dropout=0.0, vision_targets=vision_targets))
+        enable_gradient_checkpointing(peft_model)
+        peft_model.train()
+        tower = next(m for n, m in peft_model.named_modules() if n.endswith(("vision_model", "visual")))
+        text = peft_model.get_input_embeddings()
+        tower.get_input_embeddings().register_forward_hook(lambda m, i, o: seen.__setitem__("tower", o.requires_grad))
+        text.register_forward_hook(lambda m, i, o: seen.__setitem__("text", o.requires_grad))
+        for n, p in peft_model.named_parameters():
+            if "lora_B" in n:
+                torch.nn.init.normal_(p, std=0.02)
+        loss, _ = lm_loss(peft_model, batch)
+        loss.backward()
+        assert seen == {"tower": tower_grad, "text": True}, (kind, vision_targets)
+        grads = {n: p.grad for n, p in peft_model.named_parameters() if p.requires_grad}
+        assert grads and all(g is not None and g.abs().sum() > 0 for g in grads.values())
+
+
 def test_adapter_save_load_gives_identical_logits(tmp_path):
     from peft import PeftModel
 
