@@ -9,6 +9,7 @@ decoder does not use the image yet; a gap means the tower is behind the decoder.
 Usage:
     python benchmarks/probe_pretrain.py checkpoints/pretrain_tiny_vlm_cpu                 # its last.ckpt
     python benchmarks/probe_pretrain.py RUN_DIR --checkpoint RUN_DIR/best.ckpt --batches 6
+    python benchmarks/probe_pretrain.py RUN_DIR --curriculum     # the questions of data.curriculum_mix
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ def main(argv=None) -> int:
     ap.add_argument("run", type=Path, help="a pretraining run folder (config.yaml, init/, last.ckpt)")
     ap.add_argument("--checkpoint", type=Path, default=None, help="default: RUN/last.ckpt")
     ap.add_argument("--batches", type=int, default=3, help="batches of data.batch_size fresh examples")
+    ap.add_argument("--curriculum", action="store_true", help="ask the run's data.curriculum_mix questions")
     ap.add_argument("--seed", type=int, default=12345)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
@@ -86,7 +88,7 @@ def main(argv=None) -> int:
                            DenseLabels(catalog, cfg.model.tokens_per_side), OracleTokens(catalog, tok, grid))
     bs = cfg.data.batch_size
     examples = PerceptionExamples(catalog, tables, grid, cfg.model.image_size, args.seed, args.batches * bs,
-                                  cfg.data.mix, bs, root)
+                                  cfg.data.curriculum_mix if args.curriculum else cfg.data.mix, bs, root)
     teacher = OracleTeacher(model.get_input_embeddings(), 1)
     use_oracle = [False]
     projector_of(model).register_forward_hook(lambda m, i, out: teacher.replace(out, 0) if use_oracle[0] else None)

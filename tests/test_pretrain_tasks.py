@@ -51,6 +51,22 @@ def test_examples_are_deterministic_and_come_in_blocks_of_one_shape():
         a[64]
 
 
+def test_a_curriculum_draws_its_first_examples_from_its_own_mix():
+    from degusta_learn.finetune.pretrain.train import PretrainData
+
+    short = PretrainData().curriculum_mix  # the shipped default: one scene, no sheets, no gomo
+    long = TaskMix(lists=0.5, describe=0.0, gomo=0.0, locate=0.5, scenes=[0, 0, 0, 1], objects_sheet=1.0,
+                   empty_table=1.0)
+    ex = PerceptionExamples(CATALOG, TABLES, GRID, 128, 0, 64, long, block=4, root=None, early=(32, short))
+    early, late = [ex.shape_of(i) for i in range(32)], [ex.shape_of(i) for i in range(32, 64)]
+    assert {(k, sheet, empty) for _, k, sheet, empty in early} == {(1, False, False)}
+    assert {task for task, *_ in early} <= {"list", "describe", "locate"}
+    assert {shape for shape in late} <= {("list", 4, True, True), ("locate", 4, True, True)}
+    assert len(ex[31].prompt.images) == 1 and len(ex[32].prompt.images) == 1 + 4 + 1
+    # the same indices without a curriculum are the long mix's examples: a curriculum changes nothing after it
+    assert examples(mix=long)[40].answer == ex[40].answer
+
+
 def test_no_question_is_the_preference_task():
     """The base must stay zero-shot on the DegustaBot question: no preferences, no setting a table."""
     ds = examples(n=120, block=1)

@@ -91,6 +91,8 @@ def test_oracle_teacher_feeds_the_decoder_perfect_image_tokens_then_lets_go():
     swapped = teacher.replace(tokens, step=0)  # probability 1: every labelled image is its oracle sum
     assert torch.allclose(swapped[keep], teacher.oracle()) and torch.equal(swapped[~keep], tokens[~keep])
     assert teacher.probability(5) == 0.5 and torch.equal(teacher.replace(tokens, step=10), tokens)
+    held = OracleTeacher(model.get_input_embeddings(), steps=10, hold=20)  # 1 through step 19, then 10 steps to 0
+    assert [held.probability(s) for s in (0, 19, 20, 25, 30, 99)] == [1.0, 1.0, 1.0, 0.5, 0.0, 0.0]
     pull = teacher.pull(tokens)
     pull.backward()
     assert pull > 0 and tokens.grad.abs().sum() > 0 and model.get_input_embeddings().weight.grad is None

@@ -132,18 +132,21 @@ class OracleTokens:
 class OracleTeacher:
     """Replaces the projector's image tokens by their oracle sums with a probability that falls to 0.
 
-    `probability(step)` is 1 at step 0 and falls linearly to 0 at `steps`; per labelled image a coin decides.
+    `probability(step)` is 1 until step `hold`, then falls linearly to 0 over `steps` more; per labelled
+    image a coin decides.
     `pull(tokens)` is the relative squared distance of the projector's tokens to the (detached) oracle sums,
     the loss that teaches the vision tower to produce what the decoder learned to read.
     """
 
-    def __init__(self, embeddings: nn.Embedding, steps: int):
-        self.embeddings, self.steps = embeddings, steps
+    def __init__(self, embeddings: nn.Embedding, steps: int, hold: int = 0):
+        self.embeddings, self.steps, self.hold = embeddings, steps, hold
         self.ids: torch.Tensor | None = None
         self.keep: torch.Tensor | None = None
 
     def probability(self, step: int) -> float:
-        return max(0.0, 1.0 - step / self.steps) if self.steps > 0 else 0.0
+        if self.steps <= 0:
+            return 0.0
+        return 1.0 if step < self.hold else max(0.0, 1.0 - (step - self.hold) / self.steps)
 
     def oracle(self) -> torch.Tensor:
         ids = self.ids.to(self.embeddings.weight.device)

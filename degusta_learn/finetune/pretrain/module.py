@@ -50,7 +50,7 @@ class PerceptionModule(FinetuneModule):
             hidden = model.config.get_text_config().hidden_size
             self.dense = DenseHead(hidden, n_labels, side)
         if cfg.data.teacher_steps > 0:
-            self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps)
+            self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps, cfg.data.teacher_hold)
         if self.dense is not None or self.teacher is not None:
             projector_of(model).register_forward_hook(self._capture)
 

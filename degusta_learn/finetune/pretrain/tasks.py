@@ -116,10 +116,12 @@ class PerceptionExamples:
     """A map-style dataset: global index -> perception `Example` (see the module docstring)."""
 
     def __init__(self, catalog, tables: dict, grid, render_size: int, seed: int, length: int,
-                 mix: TaskMix | None = None, block: int = 8, root=None):
+                 mix: TaskMix | None = None, block: int = 8, root=None, early: tuple[int, TaskMix] | None = None):
+        """`early`: (n, mix) draws examples 0 .. n-1 from `mix` instead (a curriculum's first steps)."""
         self.catalog, self.tables, self.grid = catalog, dict(tables), grid
         self.render_size, self.seed, self.length = render_size, seed, length
         self.mix, self.block, self.root = mix or TaskMix(), max(1, block), root
+        self.early = early
         self.types = list(catalog.types)
         self._renderer = None
 
@@ -140,7 +142,7 @@ class PerceptionExamples:
     def shape_of(self, i: int) -> tuple[str, int, bool, bool]:
         """(task, scenes, objects sheet, empty table) shared by the block of index i."""
         rng = np.random.default_rng([self.seed, 1, i // self.block])
-        m = self.mix
+        m = self.early[1] if self.early is not None and i < self.early[0] else self.mix
         task = TASKS[int(rng.choice(len(TASKS), p=m.probabilities()))]
         k = 1 + int(rng.choice(4, p=np.asarray(m.scenes, float) / sum(m.scenes)))
         sheet, empty = bool(rng.random() < m.objects_sheet), bool(rng.random() < m.empty_table)

@@ -55,8 +55,17 @@ class PretrainData:
     teacher_steps: int = bounded(0, 0, 10_000_000)
     """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
     instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
+    teacher_hold: int = bounded(0, 0, 10_000_000)
+    """Steps at teacher probability 1 before it starts to fall over `teacher_steps` (e.g. a curriculum's)."""
     teacher_weight: float = 1.0
     """Weight of the pull of the tower's image tokens towards those oracle sums (while teacher_steps > 0)."""
+    curriculum_steps: int = bounded(0, 0, 10_000_000)
+    """The first steps draw their questions from `curriculum_mix` instead of `mix` (0: no curriculum)."""
+    curriculum_mix: TaskMix = field(default_factory=lambda: TaskMix(
+        lists=0.2, describe=0.3, gomo=0.0, locate=0.5, scenes=[1.0, 0.0, 0.0, 0.0], objects_sheet=0.0,
+        empty_table=0.0))
+    """The questions of the first `curriculum_steps` steps: short prompts (one scene, no sheets) on which a
+    decoder from scratch learns to copy and retrieve (docs/tiny_base.md, points 8 and 11)."""
 
     def __post_init__(self):
         for key in ("steps_per_epoch", "batch_size", "max_length"):
@@ -64,8 +73,8 @@ class PretrainData:
                 raise DegustaError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
         if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0:
             raise DegustaError("data.val_examples / data.num_workers / data.dense_weight: expected >= 0")
-        if self.teacher_steps < 0 or self.teacher_weight < 0:
-            raise DegustaError("data.teacher_steps / data.teacher_weight: expected >= 0")
+        if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
+            raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
 
 
 @dataclass
@@ -201,9 +210,11 @@ def run(cfg: PretrainConfig) -> Path:
         d = cfg.data
         steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
         side = cfg.model.tokens_per_side
-        make = lambda seed, n, block: PerceptionExamples(catalog, tables, grid, cfg.model.image_size, seed, n,  # noqa: E731
-                                                         d.mix, block, root)
-        train = make(cfg.seed, (steps + d.steps_per_epoch) * d.batch_size, d.batch_size)
+        make = lambda seed, n, block, early=None: PerceptionExamples(  # noqa: E731
+            catalog, tables, grid, cfg.model.image_size, seed, n, d.mix, block, root, early)
+        # a curriculum's first steps ask other questions; validation always asks the final mix's
+        train = make(cfg.seed, (steps + d.steps_per_epoch) * d.batch_size, d.batch_size,
+                     (d.curriculum_steps * d.batch_size, d.curriculum_mix))
         val = make(cfg.seed + 1_000_003, d.val_examples, 1)
         labels = DenseLabels(catalog, side)
         module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
