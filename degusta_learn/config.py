@@ -16,6 +16,7 @@ Example:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import types
@@ -268,7 +269,7 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix:
     for name, field in fields.items():
         key = prefix + name
         if name in data:
-            kwargs[name] = _convert(hints[name], data[name], where, key)
+            kwargs[name] = _convert(hints[name], _onto_default(field, data[name]), where, key)
             if "bounds" in field.metadata:
                 _check_bounds(kwargs[name], field.metadata["bounds"], where, key)
         elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
@@ -277,6 +278,32 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix:
         return cls(**kwargs)
     except DegustaError as e:
         raise DegustaError(f"{where}: {e}") from None
+
+
+def _onto_default(field: dataclasses.Field, value: Any) -> Any:
+    """A partial section given for a field whose default is a configured instance (`default_factory=lambda:
+    OptimConfig(lr=1.5e-3)`) fills its missing keys from that instance, not from the section class's own
+    defaults: `--set optim.weight_decay=0.1` must not reset the kind's `optim.lr`."""
+    if not isinstance(value, dict) or field.default_factory is dataclasses.MISSING:
+        return value
+    default = field.default_factory()
+    if not dataclasses.is_dataclass(default) or hasattr(type(default), "section_class"):
+        return value  # a section whose class a key picks (backend): another class's keys would not fit
+    return _merge(_init_values(default), value)
+
+
+def _init_values(obj: Any) -> Any:
+    """The constructor arguments of a dataclass instance, recursively (what from_dict would be given)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _init_values(getattr(obj, f.name)) for f in dataclasses.fields(obj) if f.init}
+    return copy.deepcopy(obj)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def load_config(cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None,

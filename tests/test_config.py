@@ -29,6 +29,35 @@ def test_yaml_overrides_and_nested(tmp_path):
     assert cfg == Outer("a", 1.0, ["x", "y"], Inner("hf", 3), None)
 
 
+@dataclass
+class Kind:
+    """A config kind whose sections default to configured instances, as PretrainConfig's optim and data do."""
+    inner: Inner = field(default_factory=lambda: Inner(name="hf", n=9))
+    outer: Outer = field(default_factory=lambda: Outer("b", rate=0.5, inner=Inner("local", 2)))
+
+
+def test_a_partial_section_keeps_the_kinds_defaults_for_the_keys_it_does_not_give(tmp_path):
+    # `--set inner.n=3` on a kind whose inner section defaults to Inner(name="hf", n=9) must keep name "hf",
+    # not fall back to the class default "openai" (it did: a one-key override reset the section's other keys)
+    assert load_config(Kind, None, ["inner.n=3"]) == Kind(inner=Inner("hf", 3))
+    assert load_config(Kind, None, ["outer.inner.n=7"]).outer == Outer("b", 0.5, [], Inner("local", 7))
+    p = tmp_path / "k.yaml"
+    p.write_text("outer:\n  rate: 0.25\n")
+    assert load_config(Kind, p).outer == Outer("b", 0.25, [], Inner("local", 2))
+    assert load_config(Kind, None) == Kind()  # nothing given: the kind's defaults
+    with pytest.raises(DegustaError, match=r"unknown key 'inner.nn'"):
+        load_config(Kind, None, ["inner.nn=1"])
+
+
+def test_a_partial_pretraining_mix_keeps_the_curriculums_short_prompts():
+    from degusta_learn.finetune.pretrain.train import PretrainConfig
+
+    cfg = load_config(PretrainConfig, None, ["data.curriculum_mix.lists=0", "optim.weight_decay=0.1"])
+    mix = cfg.data.curriculum_mix
+    assert (mix.lists, mix.scenes, mix.objects_sheet, mix.gomo) == (0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0)
+    assert (cfg.optim.lr, cfg.optim.warmup_steps, cfg.optim.weight_decay) == (1.5e-3, 100, 0.1)
+
+
 @pytest.mark.parametrize("text, sets, message", [
     ("method: a\nlr: 3\n", [], "c.yaml: unknown key 'lr'"),
     ("method: a\ninner: {nn: 3}\n", [], "c.yaml: unknown key 'inner.nn'"),
