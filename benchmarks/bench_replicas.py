@@ -73,7 +73,8 @@ def config_path(name: str) -> Path:
     return ROOT / replica_spec(name)["configs"][0]
 
 
-def overrides(name: str, replica: Path, data: Path, runs: Path, batch_size: int | None, new_tokens: int) -> list[str]:
+def overrides(name: str, replica: Path, data: Path, runs: Path, batch_size: int | None, new_tokens: int,
+              checkpointing: bool | None = None, run_name: str | None = None) -> list[str]:
     from degusta_learn.config import load_config
     from degusta_learn.finetune.config import FinetuneConfig
 
@@ -82,9 +83,10 @@ def overrides(name: str, replica: Path, data: Path, runs: Path, batch_size: int 
     return [f"model.name={replica}", f"dataset={data}", "model.dtype=float32", "trainer.accelerator=cpu",
             "trainer.devices=1", "trainer.strategy=auto", "trainer.precision=32-true", "trainer.max_steps=2",
             "trainer.accumulate_grad_batches=1", "trainer.val_check_interval=1.0", "trainer.log_every_n_steps=1",
-            "trainer.progress_bar=false", f"trainer.run_dir={runs}", f"trainer.run_name={name}",
+            "trainer.progress_bar=false", f"trainer.run_dir={runs}", f"trainer.run_name={run_name or name}",
             f"data.batch_size={bs}", f"data.max_train_episodes={2 * bs}", "data.val_episodes=1",
-            "data.num_workers=0", f"eval.max_new_tokens={new_tokens}", "eval.report_unconstrained=false"]
+            "data.num_workers=0", f"eval.max_new_tokens={new_tokens}", "eval.report_unconstrained=false"] + (
+            [] if checkpointing is None else [f"model.gradient_checkpointing={str(checkpointing).lower()}"])
 
 
 def token_stats(name: str, over: list[str]) -> dict:
@@ -180,6 +182,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch-size", type=int, default=None, help="override data.batch_size (default: the config's)")
     ap.add_argument("--new-tokens", type=int, default=256, help="eval.max_new_tokens of the validation generation")
     ap.add_argument("--skip-train", action="store_true", help="token counts and dry runs only")
+    ap.add_argument("--gradient-checkpointing", choices=["on", "off"], default=None,
+                    help="override the config's model.gradient_checkpointing (results under NAME+gc / NAME-gc)")
     ap.add_argument("--child", nargs=2, metavar=("NAME", "JSON"), help=argparse.SUPPRESS)
     ap.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -197,24 +201,26 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             build_replica(name, replica, reference_dir=ref)
             print(f"{name}: built in {time.perf_counter() - t:.0f} s", flush=True)
-        over = overrides(name, replica, args.data, args.out / "runs", args.batch_size, args.new_tokens)
-        cached = results.get(name, {})
+        gc = {None: None, "on": True, "off": False}[args.gradient_checkpointing]
+        key = name + {None: "", True: "+gc", False: "-gc"}[gc]  # the results entry and the run's name
+        over = overrides(name, replica, args.data, args.out / "runs", args.batch_size, args.new_tokens, gc, key)
+        cached = results.get(key, {})
         tokens = cached["tokens"] if cached.get("overrides") == over else token_stats(name, over)
         res = {"overrides": over, "tokens": tokens,
                "replica": json.loads((replica / "degusta_replica.json").read_text())}
-        results[name] = res
+        results[key] = res
         results_file.write_text(json.dumps(results, indent=1))
         if not args.skip_train:
             import shutil
 
-            shutil.rmtree(args.out / "runs" / name, ignore_errors=True)
-            out_json = args.out / f"{name}.train.json"
+            shutil.rmtree(args.out / "runs" / key, ignore_errors=True)
+            out_json = args.out / f"{key}.train.json"
             cmd = [sys.executable, __file__, "--child", name, str(out_json)] + [x for o in over for x in ("--set", o)]
             subprocess.run(cmd, check=True)
             res["train"] = json.loads(out_json.read_text())
-        results[name] = res
+        results[key] = res
         results_file.write_text(json.dumps(results, indent=1))
-        report(name, res)
+        report(key, res)
     return 0
 
 
