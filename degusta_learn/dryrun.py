@@ -30,7 +30,10 @@ CPU_ACTIVATION_FACTOR = 1.75
 2%, checked with saved-tensor hooks on the SmolVLM-256M replica) by the backward pass's transient gradients
 and glibc heap fragmentation (freed tensors below the mmap threshold keep their pages): x1.75, fitted on the
 SmolVLM-256M replica's measured peak and checked on SmolVLM-500M's (benchmarks/RESULTS.md). Not applied on a
-GPU, whose caching allocator reuses freed blocks (its overhead is not measured here)."""
+GPU, whose caching allocator reuses freed blocks (its overhead is not measured here). With gradient
+checkpointing, glibc's retention is larger (the default-allocator RSS was 24-45% above the prediction on the
+SmolVLM-256M and Qwen2-VL-2B replicas); with `MALLOC_MMAP_THRESHOLD_=1048576` (large blocks returned to the
+OS at once) the measured peaks were within 3% of it."""
 RUNTIME_GPU_BYTES = int(0.75 * GiB)
 """CUDA context, cuBLAS/cuDNN workspaces and kernels on the device (typical 0.5-1 GiB; not measured here)."""
 

@@ -298,6 +298,9 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
     if not on_gpu:
         acts *= CPU_ACTIVATION_FACTOR
         note += f"; activations x{CPU_ACTIVATION_FACTOR} on the CPU (backward transients, heap fragmentation)"
+        if cfg_model.gradient_checkpointing:  # measured: benchmarks/RESULTS.md, "glibc and gradient checkpointing"
+            note += ("; with gradient checkpointing glibc keeps the recomputed layers' freed memory: the RSS was "
+                     "24-45% above this on the replicas, and within 3% of it with MALLOC_MMAP_THRESHOLD_=1048576")
     runtime = RUNTIME_GPU_BYTES if on_gpu else RUNTIME_CPU_BYTES
     note += "; runtime: CUDA context and kernels" if on_gpu else "; runtime: the CPU process itself"
     return estimate_memory(total, trainable, param_bytes, trainable_bytes, acts, world_size(trainer_cfg), note,
