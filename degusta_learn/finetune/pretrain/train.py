@@ -64,8 +64,9 @@ class PretrainData:
     curriculum_mix: TaskMix = field(default_factory=lambda: TaskMix(
         lists=0.2, describe=0.3, gomo=0.0, locate=0.5, scenes=[1.0, 0.0, 0.0, 0.0], objects_sheet=0.0,
         empty_table=0.0))
-    """The questions of the first `curriculum_steps` steps: short prompts (one scene, no sheets) on which a
-    decoder from scratch learns to copy and retrieve (docs/tiny_base.md, points 8 and 11)."""
+    """The questions of the first `curriculum_steps` steps: short prompts (one scene, no sheets), on which a
+    decoder from scratch learned to copy the named objects sooner, not yet to retrieve (docs/tiny_base.md,
+    point 12)."""
 
     def __post_init__(self):
         for key in ("steps_per_epoch", "batch_size", "max_length"):
