@@ -7,7 +7,7 @@ the last step, or constant.
 
 Usage (in a LightningModule):
     def configure_optimizers(self):
-        opt = torch.optim.AdamW(groups, lr=cfg.lr)
+        opt = torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, cfg.beta2))
         return {"optimizer": opt, "lr_scheduler": lr_schedule(opt, cfg, self.trainer.estimated_stepping_batches)}
 """
 
@@ -36,6 +36,8 @@ class OptimConfig:
     """cosine (to min_lr_ratio * lr at the last step) or constant after warmup."""
     min_lr_ratio: float = bounded(0.05, 0.0, 1.0)
     """Final learning rate of the cosine schedule as a fraction of lr."""
+    beta2: float = bounded(0.999, 0.0, 0.9999999)
+    """AdamW's second-moment decay (torch's default 0.999; 0.95-0.98 is usual when training from scratch)."""
 
     def __post_init__(self):
         check_choices(self, 'optim')

@@ -36,9 +36,30 @@ def test_constant_and_warmup_capped_at_half_the_run():
     ("optim.schedule=linear", "optim.schedule: expected one of \\['cosine', 'constant'\\]"),
     ("optim.lr=0", "optim.lr: expected > 0"),
     ("optim.min_lr_ratio=1.5", "optim.min_lr_ratio: expected a value from 0.0 to 1.0"),
+    ("optim.beta2=1.0", "optim.beta2: expected a value from 0.0 to"),
 ])
 def test_bad_values_name_the_key(override, message):
     from degusta_learn.baselines.learned.train import LearnedTrainConfig
 
     with pytest.raises(DegustaError, match=message):
         load_config(LearnedTrainConfig, data={}, overrides=[override])
+
+
+def test_beta2_reaches_every_trainers_adamw():
+    """optim.beta2 (0.95-0.98 is usual from scratch; torch's 0.999 by default) is what AdamW gets, for the learned
+    model and for fine-tuning / pretraining (FinetuneModule)."""
+    from types import SimpleNamespace
+
+    from degusta_learn.baselines.learned.module import LearnedModule
+    from degusta_learn.finetune.module import FinetuneModule
+
+    cfg = OptimConfig(lr=1e-3, beta2=0.98)
+    trainer = SimpleNamespace(estimated_stepping_batches=10)
+    learned = SimpleNamespace(optim_cfg=cfg, model=torch.nn.Linear(2, 2), trainer=trainer)
+    assert LearnedModule.configure_optimizers(learned)["optimizer"].defaults["betas"] == (0.9, 0.98)
+    holder = torch.nn.Module()
+    holder.model = torch.nn.Linear(2, 2)
+    tuned = SimpleNamespace(cfg=SimpleNamespace(optim=cfg), trainer=trainer, named_parameters=holder.named_parameters,
+                            parameters=holder.parameters, model=holder.model)
+    assert FinetuneModule.configure_optimizers(tuned)["optimizer"].defaults["betas"] == (0.9, 0.98)
+    assert OptimConfig().beta2 == 0.999  # the default is torch's: no run changes unless asked

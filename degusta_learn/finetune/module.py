@@ -89,7 +89,7 @@ class FinetuneModule(L.LightningModule):
 
     def configure_optimizers(self):
         o = self.cfg.optim
-        opt = torch.optim.AdamW(param_groups(self, o), lr=o.lr, weight_decay=o.weight_decay, betas=(0.9, 0.999))
+        opt = torch.optim.AdamW(param_groups(self, o), lr=o.lr, weight_decay=o.weight_decay, betas=(0.9, o.beta2))
         return {"optimizer": opt, "lr_scheduler": lr_schedule(opt, o, self.trainer.estimated_stepping_batches)}
 
     # ------------------------------------------------------------------ validation (generates)

@@ -119,5 +119,5 @@ class LearnedModule(L.LightningModule):
                 plain = p.dim() < 2 or isinstance(mod, (torch.nn.Embedding, torch.nn.LayerNorm))
                 (no_decay if plain else decay).append(p)
         opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
-                                 {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr)
+                                 {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=(0.9, cfg.beta2))
         return {"optimizer": opt, "lr_scheduler": lr_schedule(opt, cfg, self.trainer.estimated_stepping_batches)}
