@@ -201,7 +201,7 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             build_replica(name, replica, reference_dir=ref)
             print(f"{name}: built in {time.perf_counter() - t:.0f} s", flush=True)
-        gc = {None: None, "on": True, "off": False}[args.gradient_checkpointing]
+        gc = None if args.gradient_checkpointing is None else args.gradient_checkpointing == "on"
         key = name + {None: "", True: "+gc", False: "-gc"}[gc]  # the results entry and the run's name
         over = overrides(name, replica, args.data, args.out / "runs", args.batch_size, args.new_tokens, gc, key)
         cached = results.get(key, {})

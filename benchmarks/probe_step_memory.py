@@ -79,7 +79,7 @@ def main(argv=None) -> int:
 
     fm.FinetuneModule.training_step = one_step
     torch.set_num_threads(max(1, os.cpu_count() or 1))
-    run_train(config_path(args.name.split("+")[0].removesuffix("-gc")), over)
+    run_train(config_path(results[args.name]["replica"]["replica"]), over)
     return 1
 
 
