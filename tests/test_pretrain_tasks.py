@@ -65,6 +65,10 @@ def test_a_curriculum_draws_its_first_examples_from_its_own_mix():
     assert len(ex[31].prompt.images) == 1 and len(ex[32].prompt.images) == 1 + 4 + 1
     # the same indices without a curriculum are the long mix's examples: a curriculum changes nothing after it
     assert examples(mix=long)[40].answer == ex[40].answer
+    # every setting of an example's task comes from the mix it was drawn from (questions per describe example)
+    one, several = (TaskMix(lists=0, describe=1, gomo=0, describe_questions=n) for n in (1, 3))
+    ex = PerceptionExamples(CATALOG, TABLES, GRID, 128, 0, 16, one, block=4, root=None, early=(8, several))
+    assert any(ex[i].followups for i in range(8)) and not any(ex[i].followups for i in range(8, 16))
 
 
 def test_no_question_is_the_preference_task():
@@ -127,6 +131,27 @@ def test_locate_answers_the_named_objects_of_the_named_scene_in_the_order_asked(
     assert perfect["cells_exact"] == 1.0 and perfect["n_locate"] == len(ds)
     with pytest.raises(DegustaError, match="data.mix.locate_objects"):
         TaskMix(locate_objects=0)
+
+
+def test_describe_asks_several_objects_of_one_scene_each_answered_in_turn():
+    ds = examples(n=12, block=1, mix=TaskMix(lists=0, describe=1, gomo=0, describe_questions=4))
+    for i in range(len(ds)):
+        ex = ds[i]
+        turns = [(ex.prompt.parts[-1], ex.answer)] + list(ex.followups)
+        labelled = ex.meta["cell_labels"][0]
+        scene_ids = {oid for objects in labelled for oid, _ in objects}
+        assert 1 <= len(turns) <= 4 and (len(turns) == 4 or len(turns) == len(scene_ids))
+        asked = []
+        for question, answer in turns:
+            (item,) = parse_answer(answer, "grid", CATALOG, GRID)
+            assert f"the {item.type} with object_reference_id {item.id} in final_state_1.jpg?" in question
+            assert {GRID.cells[k] for k, objects in enumerate(labelled) if item.id in {o for o, _ in objects}} == set(item.cells)
+            asked.append(item.id)
+        assert len(set(asked)) == len(asked)  # different objects
+        assert "Answer with a one-item list" in turns[0][0] and all("Answer" not in q for q, _ in turns[1:])
+    assert not examples(n=4, block=1, mix=TaskMix(lists=0, describe=1, gomo=0))[0].followups  # default: one
+    with pytest.raises(DegustaError, match="data.mix.describe_questions"):
+        TaskMix(describe_questions=0)
 
 
 def test_gomo_sheet_marks_the_asked_position():

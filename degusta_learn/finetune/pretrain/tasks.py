@@ -11,7 +11,8 @@ prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
   "List every object in final_state_2.jpg in its placement order ..." and the answer is that scene's
   objects in the grid answer format (type, id, the cells the footprint intersects, the direction).
 - ``describe``: one scene; "Find the cup with object_reference_id 17 in final_state_1.jpg ..." and the
-  answer is a one-item list (its cells and direction).
+  answer is a one-item list (its cells and direction); with `mix.describe_questions` > 1, further such
+  questions about other objects of the scene follow as new user turns, each answered in turn.
 - ``locate``: like ``list`` (1-4 scenes, optional sheets and empty table) but the question names up to
   `mix.locate_objects` objects of one scene by type and id, in random order: "Where are these objects in
   final_state_2.jpg: the cup with object_reference_id 17, the fork with ...?" and the answer lists them
@@ -63,6 +64,11 @@ class TaskMix:
     """Weight of `locate` questions (several objects of one named scene by type and id, answered in that order)."""
     locate_objects: int = 8
     """The most objects one `locate` question asks about (all of the scene's when it has fewer)."""
+    describe_questions: int = 1
+    """How many `describe` questions one example asks about its scene (different objects, up to all of the
+    scene's), each answered before the next is asked: the first in the prompt, the others as follow-up turns
+    (`Example.followups`). Several one-object questions on one image teach the decoder to find an id among the
+    image tokens far sooner than one (docs/tiny_base.md, point 13)."""
     scenes: list[float] = field(default_factory=lambda: [0.4, 0.2, 0.15, 0.25])
     """Relative weights of 1, 2, 3, 4 scenes in a `list` prompt."""
     reading_order: float = 0.5
@@ -78,8 +84,10 @@ class TaskMix:
             raise DegustaError("data.mix: task weights must be >= 0 and not all 0")
         if len(self.scenes) != 4 or any(w < 0 for w in self.scenes) or sum(self.scenes) <= 0:
             raise DegustaError("data.mix.scenes: expected 4 weights >= 0 (for 1, 2, 3, 4 scenes), not all 0")
-        if isinstance(self.locate_objects, bool) or not isinstance(self.locate_objects, int) or self.locate_objects < 1:
-            raise DegustaError(f"data.mix.locate_objects: expected an integer >= 1, got {self.locate_objects!r}")
+        for key in ("locate_objects", "describe_questions"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise DegustaError(f"data.mix.{key}: expected an integer >= 1, got {value!r}")
         for key in ("reading_order", "objects_sheet", "empty_table"):
             if not 0 <= getattr(self, key) <= 1:
                 raise DegustaError(f"data.mix.{key}: expected a probability in [0, 1], got {getattr(self, key)}")
@@ -96,9 +104,12 @@ def list_question(name: str, types: list[str], reading: bool = False) -> str:
             f"'cardinal_direction': the closest of {_DIRECTIONS_TEXT} it points to, the top being N}}.")
 
 
-def describe_question(name: str, type_: str, object_id: int) -> str:
-    return (f"Where is the {type_} with object_reference_id {object_id} in {name}? Answer with a one-item list "
-            f"{GRID_FORMAT}, 'position' being the grid cells it covers.")
+def describe_question(name: str, type_: str, object_id: int, followup: bool = False) -> str:
+    """The question about one object; a follow-up (a later turn about the same image) is its short form."""
+    question = f"Where is the {type_} with object_reference_id {object_id} in {name}?"
+    if followup:
+        return question
+    return f"{question} Answer with a one-item list {GRID_FORMAT}, 'position' being the grid cells it covers."
 
 
 def locate_question(name: str, objects: list[tuple[str, int]]) -> str:
@@ -139,10 +150,14 @@ class PerceptionExamples:
     def __getstate__(self):  # DataLoader workers build their own renderer (sprite caches)
         return {**self.__dict__, "_renderer": None}
 
+    def mix_at(self, i: int) -> TaskMix:
+        """The mix example i is drawn from: the curriculum's (`early`) for its first examples, else `mix`."""
+        return self.early[1] if self.early is not None and i < self.early[0] else self.mix
+
     def shape_of(self, i: int) -> tuple[str, int, bool, bool]:
         """(task, scenes, objects sheet, empty table) shared by the block of index i."""
         rng = np.random.default_rng([self.seed, 1, i // self.block])
-        m = self.early[1] if self.early is not None and i < self.early[0] else self.mix
+        m = self.mix_at(i)
         task = TASKS[int(rng.choice(len(TASKS), p=m.probabilities()))]
         k = 1 + int(rng.choice(4, p=np.asarray(m.scenes, float) / sum(m.scenes)))
         sheet, empty = bool(rng.random() < m.objects_sheet), bool(rng.random() < m.empty_table)
@@ -156,12 +171,12 @@ class PerceptionExamples:
         task, k, sheet, empty = self.shape_of(i)
         rng = np.random.default_rng([self.seed, 2, i])
         build = {"list": self._list, "describe": self._describe, "gomo": self._gomo, "locate": self._locate}[task]
-        parts, answer, meta = build(rng, k, sheet, empty)
+        parts, answer, meta = build(rng, self.mix_at(i), k, sheet, empty)
         from degusta_learn.prompting import Prompt
 
         meta["task"] = task
         return Example(episode=f"perception/{self.seed}/{i}", prompt=Prompt("perception", parts, f"perception/{i}"),
-                       answer=answer, meta=meta)
+                       answer=answer, meta=meta, followups=tuple(meta.pop("followups", ())))
 
     # ------------------------------------------------------------------ tasks
     def _scene_parts(self, scene, name: str, labels: list) -> list:
@@ -215,11 +230,11 @@ class PerceptionExamples:
             labels.append(self.cell_labels(()))
         return parts, labels, scenes
 
-    def _list(self, rng, k: int, sheet: bool, empty: bool):
+    def _list(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
         parts, labels, scenes = self._scenes(rng, k, sheet, empty)
         asked = int(rng.integers(k))
         name = f"final_state_{asked + 1}.jpg"
-        reading = bool(rng.random() < self.mix.reading_order)
+        reading = bool(rng.random() < mix.reading_order)
         parts.append(list_question(name, self.types, reading))
         placements = scenes[asked].placements
         if reading:
@@ -228,12 +243,12 @@ class PerceptionExamples:
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels,
                                "order": "reading" if reading else "placement"}
 
-    def _locate(self, rng, k: int, sheet: bool, empty: bool):
+    def _locate(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
         parts, labels, scenes = self._scenes(rng, k, sheet, empty)
         asked = int(rng.integers(k))
         name = f"final_state_{asked + 1}.jpg"
         placements = scenes[asked].placements
-        chosen = [placements[j] for j in rng.permutation(len(placements))[:self.mix.locate_objects]]
+        chosen = [placements[j] for j in rng.permutation(len(placements))[:mix.locate_objects]]
         parts.append(locate_question(name, [(self.catalog[p.object].type, p.object) for p in chosen]))
         answer, truth = self._truth(chosen)
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels}
@@ -247,17 +262,22 @@ class PerceptionExamples:
             parts += [f"objects_{t}.jpg:", ImagePart(f"objects_{t}.jpg", self.renderer.gomo(t))]
         return adapt_prompt(Prompt("perception", parts), PromptOptions(compose=["objects"])).parts
 
-    def _describe(self, rng, k: int, sheet: bool, empty: bool):
+    def _describe(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
         scene = random_scene(rng, self.catalog, self.tables)
         name = "final_state_1.jpg"
-        p = scene.placements[int(rng.integers(len(scene.placements)))]
-        obj = self.catalog[p.object]
-        answer, truth = self._truth([p])
+        n = min(mix.describe_questions, len(scene.placements))
+        asked = [scene.placements[j] for j in rng.permutation(len(scene.placements))[:n]]
+        if n == 1:  # one question: the draw the single-question examples have always made
+            asked = [scene.placements[int(rng.integers(len(scene.placements)))]]
+        questions = [describe_question(name, self.catalog[p.object].type, p.object, followup=j > 0)
+                     for j, p in enumerate(asked)]
+        answers = [self._truth([p]) for p in asked]
         labels: list = []
-        parts = self._scene_parts(scene, name, labels) + [describe_question(name, obj.type, obj.id)]
-        return parts, answer, {"truth": truth, "cell_labels": labels}
+        parts = self._scene_parts(scene, name, labels) + [questions[0]]
+        return parts, answers[0][0], {"truth": answers[0][1], "cell_labels": labels,
+                                      "followups": [(q, a) for q, (a, _) in zip(questions[1:], answers[1:])]}
 
-    def _gomo(self, rng, k: int, sheet: bool, empty: bool):
+    def _gomo(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
         from degusta_learn.prompting import ImagePart
         from degusta_learn.render.lifting import gomo_layout
 
