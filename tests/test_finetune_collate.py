@@ -106,3 +106,30 @@ def test_loss_matches_the_models_own_loss(setup):
         ours, n = lm_loss(model, batch)
         reference = model(**batch).loss
     assert n > 0 and torch.allclose(ours, reference, atol=1e-5)
+
+
+def test_follow_up_turns_supervise_each_answer_and_none_of_the_questions(setup):
+    import dataclasses
+
+    kind, model, processor, fmt = setup
+    ex = examples(context=0)[0]
+    follow = dataclasses.replace(ex, followups=(("And the second?", "[]"), ("The third?", ex.answer)))
+    collate = Collator(processor, fmt, 8192, model.config.image_token_id)
+    batch = collate([follow, ex])
+    tok = processor.tokenizer
+    lead, end = LEAD[kind], END[kind]
+    assert supervised_text(tok, batch, 0) == lead + ex.answer + end + lead + "[]" + end + lead + ex.answer + end
+    assert supervised_text(tok, batch, 1) == lead + ex.answer + end  # the plain example is unchanged
+    ids = batch["input_ids"][0][batch["attention_mask"][0].bool()]
+    text = tok.decode(ids, skip_special_tokens=False)
+    # the conversation is the one the chat template renders, questions included (as unsupervised tokens)
+    messages = [{"role": "user", "content": [{"type": "text", "text": "x"}]}]
+    assert text.count("And the second?") == 1 and text.index("And the second?") < text.index("The third?")
+    assert "And the second?" not in supervised_text(tok, batch, 0)
+    full = processor.apply_chat_template(messages + [
+        {"role": "assistant", "content": [{"type": "text", "text": "A"}]},
+        {"role": "user", "content": [{"type": "text", "text": "And the second?"}]}], add_generation_prompt=True,
+        tokenize=False)
+    assert full.endswith(fmt.followup_text("And the second?"))
+    counts = collate.token_counts([follow, ex])
+    assert counts[0]["answer"] > 2 * counts[1]["answer"] and counts[0]["total"] == int(batch["attention_mask"][0].sum())

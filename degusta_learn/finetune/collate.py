@@ -3,7 +3,8 @@
 For each example the prompt (user turn + generation prompt, with images) goes through the model's
 processor exactly as at generation time, and the completion (`ChatFormat.completion_text`: template
 lead + answer + end-of-turn token) is tokenized separately and appended, so training sees the very
-prompt tokens generation will see. Labels are -100 on every prompt, image and padding token; labels
+prompt tokens generation will see. An example's follow-up turns (`Example.followups`, several questions
+about one image) are appended after it, each question's turn unsupervised and its answer supervised. Labels are -100 on every prompt, image and padding token; labels
 are NOT shifted (the loss shifts once). Nothing is ever truncated: an example longer than the budget
 raises a DegustaError that names `data.max_length` and the image-token share.
 
@@ -33,8 +34,8 @@ class Collator:
         if self.pad_id is None:
             self.pad_id = fmt.end_id
 
-    def encode(self, examples) -> tuple[dict, list[list[int]], list[int]]:
-        """(processor output for the prompts, completion ids per example, prompt length per example).
+    def encode(self, examples) -> tuple[dict, list[tuple[list[int], list[int]]], list[int]]:
+        """(processor output for the prompts, (completion ids, labels) per example, prompt length per example).
 
         The one place prompt + answer tokens are counted: batches (`__call__`) and `token_counts` (the
         dry run of `degusta train`) both go through it.
@@ -52,10 +53,21 @@ class Collator:
         tok.padding_side = "right"
         enc = self.processor(text=texts, images=images if has_images else None, padding=True,
                              add_special_tokens=False, return_tensors="pt")
-        completions = [tok(self.fmt.completion_text(ex.answer), add_special_tokens=False)["input_ids"]
-                       for ex in examples]
+        completions = [self._completion(ex) for ex in examples]
         prompt_lens = enc["attention_mask"].sum(dim=1).tolist()
         return enc, completions, prompt_lens
+
+    def _completion(self, ex) -> tuple[list[int], list[int]]:
+        """(token ids, labels) of the answer, then of each follow-up turn (`Example.followups`): the
+        question's turn unsupervised (IGNORE), its answer supervised."""
+        tok = self.processor.tokenizer
+        ids = tok(self.fmt.completion_text(ex.answer), add_special_tokens=False)["input_ids"]
+        labels = list(ids)
+        for question, answer in getattr(ex, "followups", ()):
+            asked = tok(self.fmt.followup_text(question), add_special_tokens=False)["input_ids"]
+            said = tok(self.fmt.completion_text(answer), add_special_tokens=False)["input_ids"]
+            ids, labels = ids + asked + said, labels + [IGNORE] * len(asked) + said
+        return ids, labels
 
     def token_counts(self, examples) -> list[dict]:
         """Per example: {"total", "image", "text", "answer"} tokens, exactly as a batch would hold them
@@ -64,7 +76,7 @@ class Collator:
 
     def _counts(self, enc, completions, prompt_lens) -> list[dict]:
         out = []
-        for b, (p, c) in enumerate(zip(prompt_lens, completions)):
+        for b, (p, (c, _)) in enumerate(zip(prompt_lens, completions)):
             n_img = 0
             if self.image_token_id is not None:
                 n_img = int((enc["input_ids"][b] == self.image_token_id).sum())
@@ -81,7 +93,7 @@ class Collator:
 
     def __call__(self, examples) -> dict:
         enc, completions, prompt_lens = self.encode(examples)
-        lengths = [p + len(c) for p, c in zip(prompt_lens, completions)]
+        lengths = [p + len(c) for p, (c, _) in zip(prompt_lens, completions)]
         if max(lengths) > self.max_length:
             for ex, counts in zip(examples, self._counts(enc, completions, prompt_lens)):
                 if counts["total"] > self.max_length:
@@ -95,12 +107,12 @@ class Collator:
         labels = torch.full((B, T), IGNORE, dtype=torch.long)
         per_token = {k: torch.zeros((B, T), dtype=v.dtype) for k, v in enc.items()
                      if k not in ("input_ids", "attention_mask") and torch.is_tensor(v) and tuple(v.shape) == seq_shape}
-        for b, (p, c) in enumerate(zip(prompt_lens, completions)):
+        for b, (p, (c, supervised)) in enumerate(zip(prompt_lens, completions)):
             real = enc["attention_mask"][b].bool()
             input_ids[b, :p] = enc["input_ids"][b][real]
             input_ids[b, p:p + len(c)] = torch.tensor(c, dtype=torch.long)
             attention[b, :p + len(c)] = 1
-            labels[b, p:p + len(c)] = torch.tensor(c, dtype=torch.long)
+            labels[b, p:p + len(c)] = torch.tensor(supervised, dtype=torch.long)
             for k, v in per_token.items():
                 v[b, :p] = enc[k][b][real]
         out.update(input_ids=input_ids, attention_mask=attention, labels=labels, **per_token)

@@ -46,6 +46,10 @@ class Example:
     target: int = -1
     meta: dict = field(default_factory=dict)
     """What scoring needs beyond the answer text (perception examples: task and ground truth)."""
+    followups: tuple = ()
+    """(question, answer) text pairs that continue the conversation after `answer`, each a further user turn
+    and its supervised answer (several questions about one rendered image). Training only: generation and
+    scoring use `prompt` and `answer`."""
 
 
 class LiftedExamples:

@@ -23,6 +23,7 @@ from PIL import Image
 from degusta_learn.errors import DegustaError
 
 _PROBE = "ANSWER_PROBE_7"
+_QUESTION = "QUESTION_PROBE_7"
 
 
 def prompt_messages(prompt) -> tuple[list[dict], list[Image.Image]]:
@@ -76,6 +77,12 @@ class ChatFormat:
         self.end_id = end
         self.end_text = tok.decode([end], skip_special_tokens=False)
         self.stop_ids = list(dict.fromkeys([end, *stops]))
+        self._followup = None
+        follow = processor.apply_chat_template(user + [assistant_message(_PROBE), _user_message(_QUESTION)],
+                                               add_generation_prompt=True, tokenize=False)
+        done = prompt + self.completion_text(_PROBE)
+        if follow.startswith(done) and _QUESTION in follow[len(done):]:
+            self._followup = tuple(follow[len(done):].split(_QUESTION, 1))  # (before, after) the question
         bos = tok.bos_token_id
         # Templates normally hold the BOS; add it ourselves only if the tokenizer wants one and it is missing.
         self.add_bos = bool(bos is not None and tok("x")["input_ids"][:1] == [bos] and not prompt.startswith(
@@ -88,6 +95,19 @@ class ChatFormat:
     def completion_text(self, answer: str) -> str:
         """The supervised text: template lead + answer + end-of-turn token."""
         return self.lead + answer + self.end_text
+
+    def followup_text(self, question: str) -> str:
+        """The unsupervised text between an answer's end-of-turn token and the next answer's lead: the rest
+        of the template's assistant turn, a user turn asking `question` (text only), the generation prompt."""
+        if self._followup is None:
+            raise DegustaError("model: its chat template does not render a further user turn after an answer "
+                               "the way it renders the first; follow-up questions are not supported")
+        before, after = self._followup
+        return before + question + after
+
+
+def _user_message(text: str) -> dict:
+    return {"role": "user", "content": [{"type": "text", "text": text}]}
 
 
 def assistant_message(text: str) -> dict:
