@@ -172,7 +172,7 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
 
 def test_mimetic_attention_and_tied_embeddings():
     arch = dict(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=1, text_heads=2,
-                text_kv_heads=1, text_intermediate=64, vocab_size=600)
+                text_kv_heads=1, text_intermediate=64, vocab_size=600, previous_token_head=False)
     model, _ = build_base(BaseArchitecture(**arch))
     assert model.lm_head.weight is model.get_input_embeddings().weight
     attn = model.model.language_model.layers[0].self_attn
@@ -182,3 +182,26 @@ def test_mimetic_attention_and_tied_embeddings():
     assert ov.diagonal().mean() > 5 * ov.fill_diagonal_(0).abs().mean()
     with pytest.raises(DegustaError, match="model.attention_init"):
         BaseArchitecture(attention_init="xavier")
+
+
+@pytest.mark.parametrize("hidden, heads, kv", [(32, 2, 1), (256, 4, 2)])
+def test_previous_token_head_attends_one_position_back_whatever_the_tokens(hidden, heads, kv):
+    arch = BaseArchitecture(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=hidden, text_layers=1,
+                            text_heads=heads, text_kv_heads=kv, text_intermediate=64, vocab_size=600)
+    assert arch.previous_token_head  # on by default
+    model, _ = build_base(arch)
+    decoder = model.model.language_model
+    decoder.config._attn_implementation = "eager"  # attention weights out
+    ids = torch.randint(10, 500, (1, 1500), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        weights = decoder(input_ids=ids, output_attentions=True).attentions[0][0]  # (heads, T, T)
+    assert torch.diagonal(weights[0], offset=-1).min() > 0.99  # head 0: every position reads its predecessor
+    for other in range(1, heads):  # the others stay content heads (mimetic), not positional
+        assert torch.diagonal(weights[other], offset=-1).mean() < 0.2
+    plain, _ = build_base(BaseArchitecture(**{**arch.__dict__, "previous_token_head": False}))
+    with torch.no_grad():
+        plain.model.language_model.config._attn_implementation = "eager"
+        before = plain.model.language_model(input_ids=ids, output_attentions=True).attentions[0][0]
+    assert torch.diagonal(before[0], offset=-1).mean() < 0.2
+    with pytest.raises(DegustaError, match="model.previous_token_head"):
+        BaseArchitecture(previous_token_head="yes")

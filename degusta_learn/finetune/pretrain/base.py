@@ -80,6 +80,13 @@ class BaseArchitecture:
     embeddings; 0: plain random init. A decoder trained from scratch copies an id from the question after
     ~250 steps with it, not within 300 without it (docs/tiny_base.md)."""
 
+    previous_token_head: bool = True
+    """Start head 0 of the first decoder layer as a previous-token head (`previous_token_head`): a positional
+    head that moves each token's embedding one position on. An answer's first cell follows its object id
+    (`..., 'id': 48, 'position': ['D4'`): with this head the position that names the cell already holds the
+    id, and finding that id among the image tokens is one attention hop, learned in a few hundred steps;
+    a decoder from scratch otherwise has to discover both heads together (docs/tiny_base.md, point 13)."""
+
     def __post_init__(self):
         for key in ("image_size", "vision_stem", "text_hidden", "text_layers", "text_heads", "text_kv_heads",
                     "text_intermediate", "vocab_size"):
@@ -92,8 +99,9 @@ class BaseArchitecture:
                 raise DegustaError(f"model.{key}: expected 4 positive integers (one per ResNet stage), got {value!r}")
         if self.attention_init not in ATTENTION_INITS:
             raise DegustaError(f"model.attention_init: expected one of {list(ATTENTION_INITS)}, got {self.attention_init!r}")
-        if not isinstance(self.tie_embeddings, bool):
-            raise DegustaError(f"model.tie_embeddings: expected true or false, got {self.tie_embeddings!r}")
+        for key in ("tie_embeddings", "previous_token_head"):
+            if not isinstance(getattr(self, key), bool):
+                raise DegustaError(f"model.{key}: expected true or false, got {getattr(self, key)!r}")
         if isinstance(self.class_init, bool) or not isinstance(self.class_init, (int, float)) or self.class_init < 0:
             raise DegustaError(f"model.class_init: expected a number >= 0, got {self.class_init!r}")
         if self.image_size % OUTPUT_STRIDE:
@@ -168,6 +176,42 @@ def mimetic_attention(model) -> None:
                     MIMETIC_OV_GAIN / (MIMETIC_V_STD**2 * d))
 
 
+def previous_token_head(model, head: int = 0, pairs: int = 8, margin: float = 12.0) -> None:
+    """Make `head` of the first decoder layer attend to the previous position, whatever the tokens: its
+    query and key weights are zeroed and their biases set on the `pairs` fastest rotary frequencies, the
+    key's rotated one step ahead, so that with RoPE the score is sum_i c cos((m - n - 1) theta_i): largest at
+    n = m - 1, `margin` logits above every other position up to the model's maximum length. The heads that
+    share its key group stop reading those key dimensions (their query weights there are zeroed). The
+    value/output maps are left as they are (mimetic init: they copy). Qwen2 has q/k biases; this assumes it."""
+    import math
+
+    import torch
+
+    text = model.config.get_text_config()
+    heads, kv = text.num_attention_heads, text.num_key_value_heads
+    d = text.hidden_size // heads
+    theta = float(text.rope_parameters["rope_theta"])
+    pairs = min(pairs, d // 4)  # the heads sharing its key group keep at least half their dimensions
+    freqs = [theta ** (-2 * i / d) for i in range(pairs)]
+    offsets = torch.arange(text.max_position_embeddings, dtype=torch.float64)  # m - n: 0 (itself), 1, 2, ...
+    score = sum(torch.cos((offsets - 1) * f) for f in freqs)  # per unit of c; aliasing far back included
+    c = margin * math.sqrt(d) / float(score[1] - torch.cat([score[:1], score[2:]]).max())
+    attn = model.model.language_model.layers[0].self_attn
+    group = head // (heads // kv)
+    rows = [i for i in range(pairs)] + [i + d // 2 for i in range(pairs)]  # RoPE pairs dims (i, i + d/2)
+    with torch.no_grad():
+        attn.q_proj.weight[head * d:(head + 1) * d] = 0.0
+        attn.q_proj.bias[head * d:(head + 1) * d] = 0.0
+        for h in range(group * (heads // kv), (group + 1) * (heads // kv)):
+            attn.q_proj.weight[[h * d + r for r in rows]] = 0.0
+            attn.q_proj.bias[[h * d + r for r in rows]] = 0.0
+        attn.k_proj.weight[[group * d + r for r in rows]] = 0.0
+        for i, f in enumerate(freqs):
+            attn.q_proj.bias[head * d + i] = math.sqrt(c)
+            attn.k_proj.bias[group * d + i] = math.sqrt(c) * math.cos(f)
+            attn.k_proj.bias[group * d + i + d // 2] = math.sqrt(c) * math.sin(f)
+
+
 def build_base(arch: BaseArchitecture, seed: int = 0):
     """(random-weight FastVlmForConditionalGeneration, LlavaProcessor with the domain tokenizer) per `arch`."""
     import torch
@@ -196,6 +240,8 @@ def build_base(arch: BaseArchitecture, seed: int = 0):
         mimetic_attention(model)
     if arch.class_init > 0:
         init_token_classes(model, tokenizer, arch.class_init)
+    if arch.previous_token_head:
+        previous_token_head(model)
     _set_generation_ids(model, tokenizer, ids["<|im_end|>"], ids["<|endoftext|>"])
     side = {"height": arch.image_size, "width": arch.image_size}
     image_processor = CLIPImageProcessor(size=dict(side), crop_size=dict(side), do_center_crop=False,
