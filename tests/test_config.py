@@ -54,7 +54,7 @@ def test_a_partial_pretraining_mix_keeps_the_curriculums_short_prompts():
 
     cfg = load_config(PretrainConfig, None, ["data.curriculum_mix.lists=0", "optim.weight_decay=0.1"])
     mix = cfg.data.curriculum_mix
-    assert (mix.lists, mix.scenes, mix.objects_sheet, mix.gomo) == (0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0)
+    assert (mix.lists, mix.scenes, mix.objects_sheet, mix.gomo, mix.describe_questions) == (0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 8)
     assert (cfg.optim.lr, cfg.optim.warmup_steps, cfg.optim.weight_decay) == (1.5e-3, 100, 0.1)
 
 
