@@ -185,6 +185,7 @@ def previous_token_head(model, head: int = 0, pairs: int = 8, margin: float = 12
     value/output maps are left as they are (mimetic init: they copy). Qwen2 has q/k biases; this assumes it."""
     import math
 
+    import numpy as np
     import torch
 
     text = model.config.get_text_config()
@@ -193,9 +194,9 @@ def previous_token_head(model, head: int = 0, pairs: int = 8, margin: float = 12
     theta = float(text.rope_parameters["rope_theta"])
     pairs = min(pairs, d // 4)  # the heads sharing its key group keep at least half their dimensions
     freqs = [theta ** (-2 * i / d) for i in range(pairs)]
-    offsets = torch.arange(text.max_position_embeddings, dtype=torch.float64)  # m - n: 0 (itself), 1, 2, ...
-    score = sum(torch.cos((offsets - 1) * f) for f in freqs)  # per unit of c; aliasing far back included
-    c = margin * math.sqrt(d) / float(score[1] - torch.cat([score[:1], score[2:]]).max())
+    offsets = np.arange(text.max_position_embeddings, dtype=np.float64)  # m - n: 0 (itself), 1, 2, ... (numpy:
+    score = sum(np.cos((offsets - 1) * f) for f in freqs)  # also under a meta-device build); per unit of c
+    c = margin * math.sqrt(d) / float(score[1] - np.delete(score, 1).max())  # aliasing far back included
     attn = model.model.language_model.layers[0].self_attn
     group = head // (heads // kv)
     rows = [i for i in range(pairs)] + [i + d // 2 for i in range(pairs)]  # RoPE pairs dims (i, i + d/2)
