@@ -53,7 +53,7 @@ class ChatFormat:
         tok = self.tokenizer = processor.tokenizer
         if not getattr(processor, "chat_template", None):
             raise DegustaError("model: the processor has no chat template (an instruct/chat VLM is needed)")
-        user = [{"role": "user", "content": [{"type": "text", "text": "x"}]}]
+        user = [_user_message("x")]
         prompt = processor.apply_chat_template(user, add_generation_prompt=True, tokenize=False)
         full = processor.apply_chat_template(user + [assistant_message(_PROBE)], tokenize=False)
         if not full.startswith(prompt) or _PROBE not in full[len(prompt):]:
@@ -77,12 +77,8 @@ class ChatFormat:
         self.end_id = end
         self.end_text = tok.decode([end], skip_special_tokens=False)
         self.stop_ids = list(dict.fromkeys([end, *stops]))
-        self._followup = None
-        follow = processor.apply_chat_template(user + [assistant_message(_PROBE), _user_message(_QUESTION)],
-                                               add_generation_prompt=True, tokenize=False)
-        done = prompt + self.completion_text(_PROBE)
-        if follow.startswith(done) and _QUESTION in follow[len(done):]:
-            self._followup = tuple(follow[len(done):].split(_QUESTION, 1))  # (before, after) the question
+        self._prompt_probe = prompt
+        self._followup: tuple[str, str] | None = None  # probed on first use (followup_text)
         bos = tok.bos_token_id
         # Templates normally hold the BOS; add it ourselves only if the tokenizer wants one and it is missing.
         self.add_bos = bool(bos is not None and tok("x")["input_ids"][:1] == [bos] and not prompt.startswith(
@@ -100,8 +96,13 @@ class ChatFormat:
         """The unsupervised text between an answer's end-of-turn token and the next answer's lead: the rest
         of the template's assistant turn, a user turn asking `question` (text only), the generation prompt."""
         if self._followup is None:
-            raise DegustaError("model: its chat template does not render a further user turn after an answer "
-                               "the way it renders the first; follow-up questions are not supported")
+            conversation = [_user_message("x"), assistant_message(_PROBE), _user_message(_QUESTION)]
+            follow = self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False)
+            done = self._prompt_probe + self.completion_text(_PROBE)
+            if not follow.startswith(done) or _QUESTION not in follow[len(done):]:
+                raise DegustaError("model: its chat template does not render a further user turn after an answer "
+                                   "the way it renders the first; follow-up questions are not supported")
+            self._followup = tuple(follow[len(done):].split(_QUESTION, 1))  # (before, after) the question
         before, after = self._followup
         return before + question + after
 

@@ -199,7 +199,7 @@ def previous_token_head(model, head: int = 0, pairs: int = 8, margin: float = 12
     c = margin * math.sqrt(d) / float(score[1] - np.delete(score, 1).max())  # aliasing far back included
     attn = model.model.language_model.layers[0].self_attn
     group = head // (heads // kv)
-    rows = [i for i in range(pairs)] + [i + d // 2 for i in range(pairs)]  # RoPE pairs dims (i, i + d/2)
+    rows = list(range(pairs)) + [i + d // 2 for i in range(pairs)]  # RoPE pairs dims (i, i + d/2)
     with torch.no_grad():
         attn.q_proj.weight[head * d:(head + 1) * d] = 0.0
         attn.q_proj.bias[head * d:(head + 1) * d] = 0.0

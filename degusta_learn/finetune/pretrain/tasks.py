@@ -265,10 +265,11 @@ class PerceptionExamples:
     def _describe(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
         scene = random_scene(rng, self.catalog, self.tables)
         name = "final_state_1.jpg"
-        n = min(mix.describe_questions, len(scene.placements))
-        asked = [scene.placements[j] for j in rng.permutation(len(scene.placements))[:n]]
+        n, placements = min(mix.describe_questions, len(scene.placements)), scene.placements
         if n == 1:  # one question: the draw the single-question examples have always made
-            asked = [scene.placements[int(rng.integers(len(scene.placements)))]]
+            asked = [placements[int(rng.integers(len(placements)))]]
+        else:
+            asked = [placements[j] for j in rng.permutation(len(placements))[:n]]
         questions = [describe_question(name, self.catalog[p.object].type, p.object, followup=j > 0)
                      for j, p in enumerate(asked)]
         answers = [self._truth([p]) for p in asked]
