@@ -20,7 +20,8 @@ from degusta_learn.scene import default_catalog, default_tables
 
 CONFIG = Path(__file__).parent.parent / "configs" / "pretrain_tiny_vlm_cpu.yaml"
 TINY = ["model.vision_channels=[8,8,16,16]", "model.vision_stem=8", "model.text_hidden=32", "model.text_layers=1",
-        "model.text_heads=2", "model.text_kv_heads=1", "model.text_intermediate=64", "model.vocab_size=2048"]
+        "model.text_heads=2", "model.text_kv_heads=1", "model.text_intermediate=64", "model.vocab_size=2048",
+        "data.retrieval_layer=0", "data.retrieval_head=1"]
 
 
 def _overrides(tmp_path: Path, steps: int) -> list[str]:
@@ -154,6 +155,8 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
     meta = json.loads((out / "degusta_base.json").read_text())
     assert meta["training"]["steps"] == 2 and meta["tokens_per_image"] == 64 and meta["validation_curve"]
     assert "val/perception" in meta["validation_curve"][-1]
+    logged = next((tmp_path / "runs" / "p" / "csv").rglob("metrics.csv")).read_text().splitlines()[0].split(",")
+    assert {"train/retrieval", "train/dense", "train/pull"} <= set(logged)  # every auxiliary loss ran
     card = (out / "README.md").read_text()
     assert "never shown anyone's table setting" in card and "AutoModelForImageTextToText" in card
     # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head

@@ -6,7 +6,9 @@ head is trained with the model and left out of the export, and, with `data.teach
 oracle teacher (`dense.OracleTeacher`): for the first steps the decoder mostly sees perfect image tokens
 (sums of the embeddings of what covers each cell) instead of the vision tower's, with a probability
 falling from 1 to 0 over `teacher_steps`, while `data.teacher_weight` pulls the tower's tokens towards
-those sums. Validation always sees the tower's tokens.
+those sums, and, with `data.retrieval_weight > 0`, the attention supervision (`retrieval.py`): one decoder
+head is told where the object an answer names is among the image tokens. Validation always sees the
+tower's tokens.
 Validation generates an answer to each held-out perception question — constrained to the answer grammar
 for `list` / `describe` questions, a few free tokens for `gomo` ones — scores it with `score.py` and
 logs val/loss, val/object_f1, val/cells_exact, val/cell_iou, val/direction, val/mark_id,
@@ -19,6 +21,7 @@ import math
 
 from degusta_learn.finetune.loss import lm_loss
 from degusta_learn.finetune.module import FinetuneModule
+from degusta_learn.finetune.pretrain.retrieval import KEYS as RETRIEVAL_KEYS
 
 GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain tokenizer) and the stop token
 
@@ -27,6 +30,7 @@ def monitor_keys(cfg) -> set[str]:
     """Every metric PerceptionModule logs under a PretrainConfig `cfg` (what `trainer.monitor` may name)."""
     keys = {"train/loss"} | ({"train/dense"} if cfg.data.dense_weight > 0 else set())
     keys |= {"train/pull", "train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
+    keys |= {"train/retrieval"} if cfg.data.retrieval_weight > 0 else set()
     if cfg.data.val_examples > 0:
         keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
                                       "mark_id", "parse_rate", "perception")}
@@ -53,6 +57,11 @@ class PerceptionModule(FinetuneModule):
             self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps, cfg.data.teacher_hold)
         if self.dense is not None or self.teacher is not None:
             projector_of(model).register_forward_hook(self._capture)
+        self.retrieval = None
+        if cfg.data.retrieval_weight > 0:
+            from degusta_learn.finetune.pretrain.retrieval import RetrievalLoss
+
+            self.retrieval = RetrievalLoss(model, cfg.data.retrieval_layer, cfg.data.retrieval_head)
 
     def _capture(self, module, inputs, output):
         self._tokens = output  # (n_images, tokens, hidden): the vision tower's image tokens
@@ -64,6 +73,7 @@ class PerceptionModule(FinetuneModule):
         batch = dict(batch)
         targets, keep = batch.pop("dense_targets", None), batch.pop("dense_keep", None)
         oracle_ids = batch.pop("oracle_ids", None)
+        retrieval = [batch.pop(k, None) for k in RETRIEVAL_KEYS]
         if self.teacher is not None:
             self.teacher.ids, self.teacher.keep = oracle_ids, keep
         self._tokens = None
@@ -76,6 +86,11 @@ class PerceptionModule(FinetuneModule):
             if pull is not None:
                 self.log("train/pull", pull, batch_size=bs)
                 loss = loss + self.cfg.data.teacher_weight * pull
+        if self.retrieval is not None and retrieval[0] is not None:
+            sup = self.retrieval.loss(*retrieval)
+            if sup is not None:
+                self.log("train/retrieval", sup, batch_size=bs)
+                loss = loss + self.cfg.data.retrieval_weight * sup
         if self.dense is None or keep is None:
             return loss
         dense = self.dense.loss(self._tokens, targets, keep)

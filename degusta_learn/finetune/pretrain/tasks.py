@@ -27,6 +27,9 @@ prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
 reproducible and resumable, any DataLoader worker renders the same example, and the validation and
 benchmark streams (other seeds) are images the model never trained on. Consecutive indices come in
 blocks of `block` examples of the same task and number of images, so a batch has little padding.
+An example's meta holds, per image, the objects covering each grid cell (`cell_labels`, None for the
+sheets) and which of those images the answer is about (`asked_image`), the targets of the dense loss,
+the oracle teacher and the attention supervision (`dense.py`, `retrieval.py`).
 
 Example:
     ex = PerceptionExamples(catalog, tables, grid=Grid(8, 8), render_size=256, seed=0, length=1000)[0]
@@ -241,7 +244,7 @@ class PerceptionExamples:
             placements = sorted(placements, key=lambda p: self._first_cell(p))
         answer, truth = self._truth(placements)
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels,
-                               "order": "reading" if reading else "placement"}
+                               "asked_image": int(sheet) + asked, "order": "reading" if reading else "placement"}
 
     def _locate(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
         parts, labels, scenes = self._scenes(rng, k, sheet, empty)
@@ -251,7 +254,7 @@ class PerceptionExamples:
         chosen = [placements[j] for j in rng.permutation(len(placements))[:mix.locate_objects]]
         parts.append(locate_question(name, [(self.catalog[p.object].type, p.object) for p in chosen]))
         answer, truth = self._truth(chosen)
-        return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels}
+        return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels, "asked_image": int(sheet) + asked}
 
     def _object_sheets(self) -> list:
         from degusta_learn.prompting import ImagePart, Prompt
@@ -275,7 +278,7 @@ class PerceptionExamples:
         answers = [self._truth([p]) for p in asked]
         labels: list = []
         parts = self._scene_parts(scene, name, labels) + [questions[0]]
-        return parts, answers[0][0], {"truth": answers[0][1], "cell_labels": labels,
+        return parts, answers[0][0], {"truth": answers[0][1], "cell_labels": labels, "asked_image": 0,
                                       "followups": [(q, a) for q, (a, _) in zip(questions[1:], answers[1:])]}
 
     def _gomo(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):

@@ -59,6 +59,13 @@ class PretrainData:
     """Steps at teacher probability 1 before it starts to fall over `teacher_steps` (e.g. a curriculum's)."""
     teacher_weight: float = 1.0
     """Weight of the pull of the tower's image tokens towards those oracle sums (while teacher_steps > 0)."""
+    retrieval_weight: float = 1.0
+    """Weight of the attention supervision (`retrieval.py`): one decoder head is told to look, at every answer
+    cell and direction, at the image tokens of the object the answer names; 0: off."""
+    retrieval_layer: int = bounded(1, 0, 1024)
+    """The decoder layer of the supervised head (the previous-token head is in layer 0)."""
+    retrieval_head: int = bounded(2, 0, 1024)
+    """The supervised head of that layer (by default not in the previous-token head's key group)."""
     curriculum_steps: int = bounded(0, 0, 10_000_000)
     """The first steps draw their questions from `curriculum_mix` instead of `mix` (0: no curriculum)."""
     curriculum_mix: TaskMix = field(default_factory=lambda: TaskMix(
@@ -72,8 +79,9 @@ class PretrainData:
         for key in ("steps_per_epoch", "batch_size", "max_length"):
             if getattr(self, key) < 1:
                 raise DegustaError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
-        if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0:
-            raise DegustaError("data.val_examples / data.num_workers / data.dense_weight: expected >= 0")
+        if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0 or self.retrieval_weight < 0:
+            raise DegustaError("data.val_examples / data.num_workers / data.dense_weight / data.retrieval_weight: "
+                               "expected >= 0")
         if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
             raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
 
@@ -109,8 +117,15 @@ class PretrainConfig:
             raise DegustaError(f"model.image_size: {self.model.image_size} px gives {self.model.tokens_per_side} x "
                                f"{self.model.tokens_per_side} image tokens, fewer than the grid's {need} cells per "
                                f"side; use at least {need * OUTPUT_STRIDE} px (or a coarser data.grid)")
+        d = self.data
+        if d.retrieval_weight > 0 and not (d.retrieval_layer < self.model.text_layers and
+                                           d.retrieval_head < self.model.text_heads):
+            key = "retrieval_layer" if d.retrieval_layer >= self.model.text_layers else "retrieval_head"
+            raise DegustaError(f"data.{key}: layer {d.retrieval_layer}, head {d.retrieval_head} is not in the decoder "
+                               f"(model.text_layers {self.model.text_layers}, model.text_heads "
+                               f"{self.model.text_heads}); pick one inside it or set data.retrieval_weight: 0")
         square = self.data.grid.rows == self.data.grid.cols == self.model.tokens_per_side
-        for key in ("dense_weight", "teacher_steps"):  # dense targets and oracles are per grid cell, one per token
+        for key in ("dense_weight", "teacher_steps", "retrieval_weight"):  # per grid cell, one per image token
             if getattr(self.data, key) > 0 and not square:
                 raise DegustaError(f"data.{key}: the dense loss and the oracle teacher need one image token per grid cell, but "
                                f"model.image_size {self.model.image_size} px gives {self.model.tokens_per_side} x "
@@ -132,14 +147,16 @@ class DenseCollate:
     """The collator's batch plus the dense targets (`dense.DenseLabels`) and, given `oracle`, the oracle
     token ids (`dense.OracleTokens`) of its examples."""
 
-    def __init__(self, collator, labels, oracle=None):
-        self.collator, self.labels, self.oracle = collator, labels, oracle
+    def __init__(self, collator, labels, oracle=None, retrieval=None):
+        self.collator, self.labels, self.oracle, self.retrieval = collator, labels, oracle, retrieval
 
     def __call__(self, examples) -> dict:
         batch = self.collator(examples)
         batch["dense_targets"], batch["dense_keep"] = self.labels(examples)
         if self.oracle is not None:
             batch["oracle_ids"] = self.oracle(examples)
+        if self.retrieval is not None:
+            batch.update(self.retrieval(examples, batch["input_ids"], batch["labels"]))
         return batch
 
 
@@ -161,8 +178,8 @@ class EpochSampler:
 
 def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -> Path:
     """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it).
-    With `data.teacher_steps`, the tokenizer is checked for the oracle teacher (given `catalog` and
-    `grid`) before anything is written."""
+    With `data.teacher_steps` or `data.retrieval_weight`, the tokenizer is checked for the oracle teacher and
+    the attention supervision (given `catalog` and `grid`) before anything is written."""
     from degusta_learn.fileio import atomic_write_json
     from degusta_learn.vlm.load import offline
     from degusta_learn.finetune.pretrain.base import build_base
@@ -176,6 +193,10 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
         from degusta_learn.finetune.pretrain.dense import OracleTokens
 
         OracleTokens(catalog, processor.tokenizer, grid)  # refuses a tokenizer that splits cells or ids
+    if cfg.data.retrieval_weight > 0 and catalog is not None and grid is not None:
+        from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
+
+        RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, cfg.model.tokens_per_image, grid)
     init.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(init))
     processor.save_pretrained(str(init))
@@ -193,6 +214,7 @@ def run(cfg: PretrainConfig) -> Path:
     from degusta_learn.finetune.module import FinetuneData
     from degusta_learn.finetune.pretrain.export import export_base
     from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
+    from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
     from degusta_learn.finetune.pretrain.module import PerceptionModule, monitor_keys
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
     from degusta_learn.render.grid import Grid
@@ -220,8 +242,10 @@ def run(cfg: PretrainConfig) -> Path:
         labels = DenseLabels(catalog, side)
         module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
         oracle = OracleTokens(catalog, processor.tokenizer, grid) if d.teacher_steps > 0 else None
-        dense = d.dense_weight > 0 or oracle is not None
-        data = FinetuneData(train, val, DenseCollate(collator, labels, oracle) if dense else collator,
+        retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid) \
+            if d.retrieval_weight > 0 else None
+        dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
+        data = FinetuneData(train, val, DenseCollate(collator, labels, oracle, retrieval) if dense else collator,
                             d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
                             val_collator=collator)
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
