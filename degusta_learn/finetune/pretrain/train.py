@@ -66,6 +66,9 @@ class PretrainData:
     """The decoder layer of the supervised head (the previous-token head is in layer 0)."""
     retrieval_head: int = bounded(2, 0, 1024)
     """The supervised head of that layer (by default not in the previous-token head's key group)."""
+    retrieval_list_items: bool = False
+    """Also supervise, in *list* answers, the positions predicting each item's type and id (they come from the
+    image there, not from the question): the scan over a scene's objects that a list needs."""
     curriculum_steps: int = bounded(0, 0, 10_000_000)
     """The first steps draw their questions from `curriculum_mix` instead of `mix` (0: no curriculum)."""
     curriculum_mix: TaskMix = field(default_factory=lambda: TaskMix(
@@ -242,8 +245,8 @@ def run(cfg: PretrainConfig) -> Path:
         labels = DenseLabels(catalog, side)
         module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
         oracle = OracleTokens(catalog, processor.tokenizer, grid) if d.teacher_steps > 0 else None
-        retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid) \
-            if d.retrieval_weight > 0 else None
+        retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
+                                     d.retrieval_list_items) if d.retrieval_weight > 0 else None
         dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
         data = FinetuneData(train, val, DenseCollate(collator, labels, oracle, retrieval) if dense else collator,
                             d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
