@@ -142,11 +142,15 @@ def test_teacher_needs_one_token_per_cell():
 
 
 @pytest.mark.slow
-def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
+def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     from transformers import AutoModelForImageTextToText, AutoProcessor
 
     from degusta_learn.vlm.load import load_vlm
 
+    seen: list[int] = []  # the training examples drawn, in order (validation uses another seed)
+    draw = PerceptionExamples.__getitem__
+    monkeypatch.setattr(PerceptionExamples, "__getitem__",
+                        lambda self, i: (seen.append(i) if self.seed == 0 else None, draw(self, i))[1])
     out = run_train(CONFIG, _overrides(tmp_path, 2))
     assert out == tmp_path / "base"
     for name in ("config.json", "model.safetensors", "tokenizer.json", "processor_config.json", "README.md",
@@ -168,9 +172,11 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path):
     # resume: the same command with more steps continues the run (same initial weights and tokenizer)
     ckpt = tmp_path / "runs" / "p" / "last.ckpt"
     assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 2
-    run_train(CONFIG, _overrides(tmp_path, 4))
-    assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 4
-    assert json.loads((out / "degusta_base.json").read_text())["training"]["steps"] == 4
+    run_train(CONFIG, _overrides(tmp_path, 6))
+    assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 6
+    assert json.loads((out / "degusta_base.json").read_text())["training"]["steps"] == 6
+    # the resumed run drew exactly the examples an uninterrupted one would: steps 2-5, none skipped or repeated
+    assert seen == list(range(6 * 2)), seen
 
 
 def test_mimetic_attention_and_tied_embeddings():

@@ -163,20 +163,21 @@ class DenseCollate:
         return batch
 
 
-class EpochSampler:
-    """Indices epoch * n .. epoch * n + n - 1: every epoch sees fresh examples (Lightning calls set_epoch)."""
+class StepSampler:
+    """Each epoch's `n` indices start where training stands: at `start()` batches done times the batch size, so
+    every batch sees fresh examples and a resumed run sees exactly the examples an uninterrupted one would.
+    (Lightning's epoch counter is not used: resumed from a checkpoint written at an epoch's end, the run began
+    one epoch ahead and skipped that epoch's examples, e.g. 150 steps of a curriculum.)"""
 
-    def __init__(self, n: int):
-        self.n, self.epoch = n, 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
+    def __init__(self, n: int, batch_size: int, start=lambda: 0):
+        self.n, self.batch_size, self.start = n, batch_size, start
 
     def __len__(self) -> int:
         return self.n
 
     def __iter__(self):
-        return iter(range(self.epoch * self.n, (self.epoch + 1) * self.n))
+        first = int(self.start()) * self.batch_size
+        return iter(range(first, first + self.n))
 
 
 def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -> Path:
@@ -239,7 +240,8 @@ def run(cfg: PretrainConfig) -> Path:
         make = lambda seed, n, block, early=None: PerceptionExamples(  # noqa: E731
             catalog, tables, grid, cfg.model.image_size, seed, n, d.mix, block, root, early)
         # a curriculum's first steps ask other questions; validation always asks the final mix's
-        train = make(cfg.seed, (steps + d.steps_per_epoch) * d.batch_size, d.batch_size,
+        batches = steps * cfg.trainer.accumulate_grad_batches
+        train = make(cfg.seed, (batches + d.steps_per_epoch) * d.batch_size, d.batch_size,
                      (d.curriculum_steps * d.batch_size, d.curriculum_mix))
         val = make(cfg.seed + 1_000_003, d.val_examples, 1)
         labels = DenseLabels(catalog, side)
@@ -249,7 +251,9 @@ def run(cfg: PretrainConfig) -> Path:
                                      d.retrieval_list_items) if d.retrieval_weight > 0 else None
         dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
         data = FinetuneData(train, val, DenseCollate(collator, labels, oracle, retrieval) if dense else collator,
-                            d.batch_size, d.num_workers, sampler=EpochSampler(d.steps_per_epoch * d.batch_size),
+                            d.batch_size, d.num_workers, sampler=StepSampler(
+                                d.steps_per_epoch * d.batch_size, d.batch_size,
+                                lambda: module.global_step * cfg.trainer.accumulate_grad_batches),
                             val_collator=collator)
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
         if module.trainer is not None and not module.trainer.is_global_zero:
