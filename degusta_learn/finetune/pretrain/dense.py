@@ -88,6 +88,15 @@ def projector_of(model):
                        "dense head to; set data.dense_weight: 0")
 
 
+def single_token(tokenizer, text: str, key: str, what: str) -> int:
+    """The one token id of `text`, or a one-line error naming `data.<key>` when the tokenizer splits it."""
+    ids = tokenizer.encode(text, add_special_tokens=False)
+    if len(ids) != 1:
+        raise DegustaError(f"data.{key}: the tokenizer splits {text!r} into {len(ids)} tokens; {what} needs cells, "
+                           f"types, ids and directions as single tokens (the domain tokenizer); set data.{key}: 0")
+    return ids[0]
+
+
 class OracleTokens:
     """Per image token, the token ids whose embeddings sum to a *perfect* image token (the oracle teacher).
 
@@ -102,12 +111,7 @@ class OracleTokens:
         from degusta_learn.render.grid import DIRECTIONS
 
         def one(text: str) -> int:
-            ids = tokenizer.encode(text, add_special_tokens=False)
-            if len(ids) != 1:
-                raise DegustaError(f"data.teacher_steps: the tokenizer splits {text!r} into {len(ids)} tokens; the "
-                                   "oracle teacher needs cells, types, ids and directions as single tokens "
-                                   "(the domain tokenizer); set data.teacher_steps: 0")
-            return ids[0]
+            return single_token(tokenizer, text, "teacher_steps", "the oracle teacher")
 
         self.cell = [one(c) for c in grid.cells]
         self.type = {o.id: one(o.type) for o in catalog}

@@ -44,13 +44,10 @@ class RetrievalTargets:
         that predict an item's type and id point at that item's object (read ahead to the item's id)."""
         from degusta_learn.render.grid import DIRECTIONS
 
+        from degusta_learn.finetune.pretrain.dense import single_token
+
         def one(text: str) -> int:
-            ids = tokenizer.encode(text, add_special_tokens=False)
-            if len(ids) != 1:
-                raise DegustaError(f"data.retrieval_weight: the tokenizer splits {text!r} into {len(ids)} tokens; "
-                                   "attention supervision needs ids, cells and directions as single tokens (the "
-                                   "domain tokenizer); set data.retrieval_weight: 0")
-            return ids[0]
+            return single_token(tokenizer, text, "retrieval_weight", "attention supervision")
 
         self.object_of = {one(str(o.id)): o.id for o in catalog}
         self.copied = {one(c) for c in grid.cells} | {one(d) for d in DIRECTIONS}
