@@ -130,10 +130,10 @@ class PretrainConfig:
         square = self.data.grid.rows == self.data.grid.cols == self.model.tokens_per_side
         for key in ("dense_weight", "teacher_steps", "retrieval_weight"):  # per grid cell, one per image token
             if getattr(self.data, key) > 0 and not square:
-                raise DegustaError(f"data.{key}: the dense loss and the oracle teacher need one image token per grid cell, but "
-                               f"model.image_size {self.model.image_size} px gives {self.model.tokens_per_side} x "
-                               f"{self.model.tokens_per_side} tokens for a {self.data.grid.rows} x "
-                               f"{self.data.grid.cols} grid; set data.{key}=0 or match them")
+                raise DegustaError(f"data.{key}: the dense loss, the oracle teacher and the attention supervision "
+                                   f"need one image token per grid cell, but model.image_size {self.model.image_size} "
+                                   f"px gives {self.model.tokens_per_side} x {self.model.tokens_per_side} tokens for a "
+                                   f"{self.data.grid.rows} x {self.data.grid.cols} grid; set data.{key}=0 or match them")
 
 
 def catalog_and_tables(dataset: str | None):
