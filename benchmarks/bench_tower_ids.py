@@ -11,6 +11,8 @@ type 0.2, id 0.008, id within its type 0.04. Compare with the same readout of a 
 Usage:
     python benchmarks/bench_tower_ids.py                       # 3000 steps of 16 images, ~21 CPU minutes
     python benchmarks/bench_tower_ids.py --steps 500 --eval-every 250
+    python benchmarks/bench_tower_ids.py --run RUN --checkpoint RUN/last.ckpt --held-out 64
+        # no training: the same readout of a pretraining run's own tower and dense head
 """
 
 from __future__ import annotations
@@ -57,6 +59,8 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=500)
     ap.add_argument("--held-out", type=int, default=24, help="held-out scenes read at every evaluation")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--run", default=None, help="a pretraining run folder (init/): read its tower, train nothing")
+    ap.add_argument("--checkpoint", default=None, help="with --run: the checkpoint to read (default RUN/last.ckpt)")
     args = ap.parse_args()
 
     import torch
@@ -81,11 +85,29 @@ def main() -> None:
     held = [PerceptionExamples(catalog, tables, Grid(8, 8), 256, 2_000_077, args.held_out, scenes, 1)[i]
             for i in range(args.held_out)]
 
+    if args.run:  # the run's own weights and dense head instead of a fresh tower
+        from pathlib import Path
+
+        from degusta_learn.vlm.load import load_vlm
+
+        model, processor = load_vlm(str(Path(args.run) / "init"), device="cpu", dtype="float32", key="run")
+        state = torch.load(args.checkpoint or Path(args.run) / "last.ckpt", map_location="cpu",
+                           weights_only=True)
+        model.load_state_dict({k[6:]: v for k, v in state["state_dict"].items() if k.startswith("model.")})
+        head.load_state_dict({k[6:]: v for k, v in state["state_dict"].items() if k.startswith("dense.")})
+        inner = model.model
+
     def tokens(examples):
         images = [getattr(e.prompt.images[0], "image", e.prompt.images[0]) for e in examples]
         pixels = processor.image_processor(images=images, return_tensors="pt")["pixel_values"]
         return inner.get_image_features(pixel_values=pixels).pooler_output
 
+    if args.run:
+        with torch.no_grad():
+            r = readouts(head, tokens(held), held, catalog)
+        print(f"{args.checkpoint or args.run} (step {state['global_step']}): type {r['type']:.3f}, id {r['id']:.3f}, "
+              f"id within type {r['id_within_type']:.3f}, direction {r['direction']:.3f} ({r['cells']} cells)")
+        return
     rows, t0 = [], time.time()
     print(f"tower + projector + dense head, {sum(p.numel() for p in params):,} parameters, batch {args.batch}")
     for step in range(1, args.steps + 1):
