@@ -309,6 +309,16 @@ def batch():
     return ids, labels, att, idx, n_img
 
 
+def embed(ids, idx):
+    """Input embeddings with the 64 image positions replaced by their oracle sums (when there is an image)."""
+    x = E(ids)
+    if idx is None:
+        return x
+    m = (idx >= 0).float()
+    vec = (E(idx.clamp(min=0)) * m[..., None]).sum(1).view(ids.shape[0], 64, -1)
+    return torch.cat([vec.to(x.dtype), x[:, 64:]], 1)
+
+
 opt = torch.optim.AdamW(model.parameters(), lr=LR, weight_decay=0.01, betas=(0.9, g("beta2", 0.98)))
 WARM = g("warm", 50)
 t0 = time.time()
@@ -320,12 +330,7 @@ for step in range(1, STEPS + 1):
     for gr in opt.param_groups:
         gr["lr"] = cur
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        x = E(ids)
-        if idx is not None:
-            m = (idx >= 0).float()
-            vec = (E(idx.clamp(min=0)) * m[..., None]).sum(1).view(B, 64, -1)
-            x = torch.cat([vec.to(x.dtype), x[:, 64:]], 1)
-        h = lm(inputs_embeds=x, attention_mask=att).last_hidden_state[:, :-1]
+        h = lm(inputs_embeds=embed(ids, idx), attention_mask=att).last_hidden_state[:, :-1]
         tgt = labels[:, 1:]
         sel = tgt != -100
         logits = head(h[sel]).float()
@@ -373,11 +378,7 @@ if g("final_eval", 0):  # fresh batches, eval mode, fp32, no update: is the runn
     with torch.no_grad():
         for _ in range(8):
             ids, labels, att, idx, n_img = batch()
-            x = E(ids)
-            m = (idx >= 0).float()
-            vec = (E(idx.clamp(min=0)) * m[..., None]).sum(1).view(B, 64, -1)
-            x = torch.cat([vec.to(x.dtype), x[:, 64:]], 1)
-            h = lm(inputs_embeds=x, attention_mask=att).last_hidden_state[:, :-1]
+            h = lm(inputs_embeds=embed(ids, idx), attention_mask=att).last_hidden_state[:, :-1]
             tgt = labels[:, 1:]
             sel = tgt != -100
             pr = head(h[sel]).argmax(-1).tolist()
