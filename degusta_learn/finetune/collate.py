@@ -5,8 +5,9 @@ processor exactly as at generation time, and the completion (`ChatFormat.complet
 lead + answer + end-of-turn token) is tokenized separately and appended, so training sees the very
 prompt tokens generation will see. An example's follow-up turns (`Example.followups`, several questions
 about one image) are appended after it, each question's turn unsupervised and its answer supervised.
-Labels are -100 on every prompt, image and padding token; labels are NOT shifted (the loss shifts once). Nothing is ever truncated: an example longer than the budget
-raises a DegustaError that names `data.max_length` and the image-token share.
+Labels are -100 on every prompt, image and padding token; labels are NOT shifted (the loss shifts once).
+Nothing is ever truncated: an example longer than the budget raises a DegustaError that names
+`data.max_length` and the image-token share.
 
 Example:
     collate = Collator(processor, fmt, max_length=2048, image_token_id=model.config.image_token_id)

@@ -9,7 +9,8 @@ What it does: builds a FastVLM of `model:` sizes with random weights and the dom
 once in `<run>/init/`, so a resumed run continues the same model), then trains every weight on
 perception questions about random style-free scenes (`tasks.py`; never a participant's arrangement,
 never the DegustaBot question). An "epoch" is `data.steps_per_epoch` steps of fresh examples (the
-sampler offsets the example index by the epoch, so no example repeats); each epoch ends with a
+sampler starts at the steps already trained, `StepSampler`, so no example repeats or is skipped, resumed
+or not); each epoch ends with a
 validation that generates answers to `data.val_examples` held-out questions (another seed) and logs
 val/object_f1, val/cells_exact, val/direction, val/mark_id and their mean val/perception, which picks
 best.ckpt. At the end the best weights are written to `export` as a plain Hugging Face model folder
