@@ -4,8 +4,9 @@ The scenes draw no id marks: which of a type's ~25 objects covers a cell is only
 256 px. This trains the base's tower (timm ResNet, output stride 32: 8 x 8 tokens), its projector and the
 dense head of the pretraining (`finetune/pretrain/dense.py`) on the dense loss alone (no decoder), on fresh
 single-scene images, and every `--eval-every` steps reads, on the single-object cells of held-out scenes
-(another seed), the head's top-1 type, id, id among the objects of the true type, and direction. Chance:
-type 0.2, id 0.008, id within its type 0.04. Compare with the same readout of a full pretraining run's tower
+(another seed), the head's top-1 type, id among the objects of the true type, and direction
+(`DenseHead.readouts`, also logged as val/tower_* by every pretraining run). Chance: type 0.2, id within its
+type 0.04. Compare with the same readout of a full pretraining run's tower
 (docs/tiny_base.md, points 14-15), whose dense loss has weight `data.dense_weight`.
 
 Usage:
@@ -23,32 +24,7 @@ import time
 
 os.environ["HF_HUB_OFFLINE"] = "1"
 
-CHANCE = {"type": 0.2, "id": 1 / 125, "id_within_type": 1 / 25}
-
-
-def readouts(head, tokens, examples, catalog) -> dict[str, float]:
-    """Top-1 accuracies of the dense head on every held-out cell covered by exactly one object."""
-    from degusta_learn.render.grid import DIRECTIONS
-
-    types, ids = list(catalog.types), sorted(catalog.ids)
-    nt, ni = len(types), len(ids)
-    out = head.proj(tokens).float()  # (images, 64, labels + 16)
-    right = {"type": 0, "id": 0, "id_within_type": 0, "direction": 0}
-    n = 0
-    for ex, logits in zip(examples, out):
-        for k, objects in enumerate(ex.meta["cell_labels"][0]):
-            if len(objects) != 1:
-                continue
-            oid, direction = objects[0]
-            kind = catalog[oid].type
-            n += 1
-            right["type"] += int(logits[k, :nt].argmax()) == types.index(kind)
-            id_logits = logits[k, nt:nt + ni]
-            right["id"] += ids[int(id_logits.argmax())] == oid
-            same = [j for j, x in enumerate(ids) if catalog[x].type == kind]
-            right["id_within_type"] += ids[same[int(id_logits[same].argmax())]] == oid
-            right["direction"] += DIRECTIONS[int(logits[k, nt + ni:nt + ni + len(DIRECTIONS)].argmax())] == direction
-    return {k: v / max(1, n) for k, v in right.items()} | {"cells": n}
+CHANCE = {"type": 0.2, "id_within_type": 1 / 25}
 
 
 def main() -> None:
@@ -104,9 +80,9 @@ def main() -> None:
 
     if args.run:
         with torch.no_grad():
-            r = readouts(head, tokens(held), held, catalog)
-        print(f"{args.checkpoint or args.run} (step {state['global_step']}): type {r['type']:.3f}, id {r['id']:.3f}, "
-              f"id within type {r['id_within_type']:.3f}, direction {r['direction']:.3f} ({r['cells']} cells)")
+            r = head.readouts(tokens(held), held, catalog)
+        print(f"{args.checkpoint or args.run} (step {state['global_step']}): type {r['type']:.3f}, "
+              f"id within type {r['id']:.3f}, direction {r['direction']:.3f} ({r['cells']} cells)")
         return
     rows, t0 = [], time.time()
     print(f"tower + projector + dense head, {sum(p.numel() for p in params):,} parameters, batch {args.batch}")
@@ -123,17 +99,16 @@ def main() -> None:
         opt.zero_grad()
         if step % args.eval_every == 0 or step == args.steps:
             with torch.no_grad():
-                r = readouts(head, tokens(held), held, catalog)
+                r = head.readouts(tokens(held), held, catalog)
             rows.append((step, r))
             print(f"step {step:5d} ({time.time() - t0:5.0f} s, {step * args.batch} images): dense loss "
-                  f"{loss.item():.3f}, type {r['type']:.3f}, id {r['id']:.3f}, id within type "
-                  f"{r['id_within_type']:.3f}, direction {r['direction']:.3f} ({r['cells']} cells)", flush=True)
-    print("\n| images seen | type | id | id within its type | direction |")
-    print("|---:|---:|---:|---:|---:|")
+                  f"{loss.item():.3f}, type {r['type']:.3f}, id within type {r['id']:.3f}, direction "
+                  f"{r['direction']:.3f} ({r['cells']} cells)", flush=True)
+    print("\n| images seen | type | id within its type | direction |")
+    print("|---:|---:|---:|---:|")
     for step, r in rows:
-        print(f"| {step * args.batch} | {r['type']:.3f} | {r['id']:.3f} | {r['id_within_type']:.3f} | "
-              f"{r['direction']:.3f} |")
-    print("| chance | {type:.3f} | {id:.3f} | {id_within_type:.3f} | - |".format(**CHANCE))
+        print(f"| {step * args.batch} | {r['type']:.3f} | {r['id']:.3f} | {r['direction']:.3f} |")
+    print(f"| chance | {CHANCE['type']:.3f} | {CHANCE['id_within_type']:.3f} | - |")
 
 
 if __name__ == "__main__":

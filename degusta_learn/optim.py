@@ -13,6 +13,7 @@ Usage (in a LightningModule):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -57,3 +58,17 @@ def lr_schedule(optimizer: torch.optim.Optimizer, cfg: OptimConfig, total_steps:
         sched = get_cosine_with_min_lr_schedule_with_warmup(optimizer, num_warmup_steps=warm, num_training_steps=total,
                                                             min_lr_rate=cfg.min_lr_ratio)
     return {"scheduler": sched, "interval": "step"}
+
+
+def warmup_factor(cfg: OptimConfig, step: int, total_steps: int) -> float:
+    """The multiplier of `cfg.lr` at optimizer step `step` of `total_steps` under `lr_schedule` (the same linear
+    warmup, then cosine to `min_lr_ratio` or constant), for a schedule that starts later than step 0, e.g. the
+    decoder's after pretraining's vision stage (`finetune/pretrain/module.py`)."""
+    total = max(1, int(total_steps))
+    warm = min(cfg.warmup_steps, total // 2)
+    if step < warm:
+        return step / max(1, warm)
+    if cfg.schedule == "constant":
+        return 1.0
+    progress = min(1.0, (step - warm) / max(1, total - warm))
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))

@@ -63,3 +63,18 @@ def test_beta2_reaches_every_trainers_adamw():
                             parameters=holder.parameters, model=holder.model)
     assert FinetuneModule.configure_optimizers(tuned)["optimizer"].defaults["betas"] == (0.9, 0.98)
     assert OptimConfig().beta2 == 0.999  # the default is torch's: no run changes unless asked
+
+
+@pytest.mark.parametrize("schedule", ["cosine", "constant"])
+@pytest.mark.parametrize("total", [1, 7, 100])
+def test_warmup_factor_is_the_transformers_schedule_step_for_step(schedule, total):
+    # the reference is transformers' own schedule (what lr_schedule hands Lightning), not a formula we wrote
+    from degusta_learn.optim import warmup_factor
+
+    o = OptimConfig(lr=1.0, warmup_steps=10, schedule=schedule, min_lr_ratio=0.05)
+    opt = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
+    sched = lr_schedule(opt, o, total)["scheduler"]
+    for step in range(total):
+        assert opt.param_groups[0]["lr"] == pytest.approx(warmup_factor(o, step, total), abs=1e-12), step
+        opt.step()
+        sched.step()

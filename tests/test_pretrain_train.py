@@ -217,3 +217,45 @@ def test_previous_token_head_attends_one_position_back_whatever_the_tokens(hidde
     assert torch.diagonal(before[0], offset=-1).mean() < 0.2
     with pytest.raises(DegustaError, match="model.previous_token_head"):
         BaseArchitecture(previous_token_head="yes")
+
+
+def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_schedule(tmp_path):
+    from safetensors.torch import load_file
+
+    steps = ["data.tower_steps=2", "data.teacher_hold=1", "data.teacher_steps=2", "data.curriculum_steps=2",
+             "data.steps_per_epoch=1"]  # validations at steps 1 (in the vision stage), 2, ...
+    run_train(CONFIG, _overrides(tmp_path, 2) + steps)
+    run = tmp_path / "runs" / "p"
+    init = load_file(run / "init" / "model.safetensors")
+    state = torch.load(run / "last.ckpt", weights_only=True, map_location="cpu")
+    after = {k[6:]: v for k, v in state["state_dict"].items() if k.startswith("model.")}
+    changed = {k for k, v in init.items() if not torch.equal(v, after[k])}
+    assert changed and all(("vision_tower" in k or "multi_modal_projector" in k) for k in changed), changed
+    assert any("vision_tower" in k for k in changed)
+    groups = state["optimizer_states"][0]["param_groups"]
+    assert [g["name"] for g in groups] == ["vision", "decoder"]  # the decoder's schedule starts after the stage
+    rows = (run / "csv").rglob("metrics.csv")
+    import csv
+
+    table = list(csv.DictReader(next(rows).open()))
+    val = [r for r in table if r.get("val/tower_type")]
+    assert val and val[0]["val/perception"] == "nan" and float(val[0]["val/tower_id"]) >= 0  # read, not answered
+    assert not any(r.get("train/loss") for r in table)  # the decoder never ran
+    # the same command with more steps resumes into the decoder stage: every part trains, answers are scored
+    run_train(CONFIG, _overrides(tmp_path, 4) + steps)
+    state = torch.load(run / "last.ckpt", weights_only=True, map_location="cpu")
+    after = {k[6:]: v for k, v in state["state_dict"].items() if k.startswith("model.")}
+    assert not torch.equal(init["model.language_model.layers.0.mlp.up_proj.weight"],
+                           after["model.language_model.layers.0.mlp.up_proj.weight"])
+    table = [r for path in (run / "csv").rglob("metrics.csv") for r in csv.DictReader(path.open())]
+    assert any(r.get("train/loss") for r in table) and any(r.get("train/teacher_p") == "1.0" for r in table)
+    assert any(r.get("val/perception") not in (None, "", "nan") for r in table)
+
+
+@pytest.mark.parametrize("extra, key", [(["data.tower_steps=2", "data.dense_weight=0"], "data.tower_steps"),
+                                        (["data.tower_steps=2", "trainer.early_stopping_patience=2"],
+                                         "trainer.early_stopping_patience")])
+def test_a_vision_stage_that_cannot_work_is_refused_before_anything_is_written(tmp_path, extra, key):
+    with pytest.raises(DegustaError, match=key):
+        run_train(CONFIG, _overrides(tmp_path, 4) + extra)
+    assert not (tmp_path / "runs").exists()

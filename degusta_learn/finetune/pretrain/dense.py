@@ -77,6 +77,32 @@ class DenseHead(nn.Module):
         where = out[..., self.n_labels:].reshape(n * t, 2, self.side)
         return bce + F.cross_entropy(where[:, 0], row) + F.cross_entropy(where[:, 1], col)
 
+    @torch.no_grad()
+    def readouts(self, tokens: torch.Tensor, examples, catalog) -> dict[str, float]:
+        """Top-1 accuracies of the head on every labelled grid cell covered by exactly one object: its type, its
+        id among the objects of that type ("id", chance 1/25 in the default catalog) and its direction.
+        `tokens` (n_images, side^2, hidden) are the image tokens of `examples`' images in order (unlabelled
+        images, e.g. object sheets, are skipped). "cells" is how many cells were read."""
+        types, ids = list(catalog.types), sorted(catalog.ids)
+        nt, ni = len(types), len(ids)
+        same = {t: [j for j, x in enumerate(ids) if catalog[x].type == t] for t in types}
+        labels = [cells for ex in examples for cells in ex.meta.get("cell_labels", [])]
+        right, n = {"type": 0, "id": 0, "direction": 0}, 0
+        if len(labels) != tokens.shape[0]:
+            return {k: float("nan") for k in right} | {"cells": 0}
+        out = self.proj(tokens).float()
+        for cells, logits in zip(labels, out):
+            for k, objects in enumerate(cells or []):
+                if len(objects) != 1:
+                    continue
+                oid, direction = objects[0]
+                kind, n = catalog[oid].type, n + 1
+                right["type"] += int(logits[k, :nt].argmax()) == types.index(kind)
+                of_type = same[kind]
+                right["id"] += ids[of_type[int(logits[k, nt:nt + ni][of_type].argmax())]] == oid
+                right["direction"] += int(logits[k, nt + ni:self.n_labels].argmax()) == DIRECTIONS.index(direction)
+        return {k: (v / n if n else float("nan")) for k, v in right.items()} | {"cells": n}
+
 
 def projector_of(model):
     """The module whose output is the image tokens the decoder sees (FastVLM projector / Idefics3 connector)."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import math
 import shutil
 from pathlib import Path
 
@@ -35,8 +36,9 @@ def training_curve(run_dir: Path) -> list[dict]:
                 if not row.get("val/perception"):
                     continue
                 step = int(float(row["step"]))
-                rows[step] = {"step": step, **{k: round(float(v), 4) for k, v in row.items()
-                                               if k.startswith("val/") and v not in ("", None)}}
+                rows[step] = {"step": step, **{k: round(float(v), 4) for k, v in row.items()  # NaN: not measured
+                                               if k.startswith("val/") and v not in ("", None)
+                                               and math.isfinite(float(v))}}
     return [rows[s] for s in sorted(rows)]
 
 
@@ -149,11 +151,14 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
                   ""]
     if curve:
         lines += [f"Validation during training ({len(curve)} validations; last at step {last['step']}):", "",
-                  "| step | object F1 | exact cells | direction | mark id | mean |", "|---:|---:|---:|---:|---:|---:|"]
+                  "| step | object F1 | exact cells | direction | mark id | mean | tower: type / id within type |",
+                  "|---:|---:|---:|---:|---:|---:|---:|"]
         shown = curve[:: max(1, len(curve) // 8)]
         for row in shown + ([last] if shown[-1] is not last else []):
             lines.append("| " + " | ".join([str(row["step"])] + [_fmt(row.get(f"val/{k}")) for k in
-                                             ("object_f1", "cells_exact", "direction", "mark_id", "perception")]) + " |")
+                                             ("object_f1", "cells_exact", "direction", "mark_id", "perception")]
+                                            + [f"{_fmt(row.get('val/tower_type'))} / {_fmt(row.get('val/tower_id'))}"])
+                            + " |")
         lines.append("")
     lines += [
         "## Limits", "",

@@ -7,8 +7,12 @@ oracle teacher (`dense.OracleTeacher`): for the first steps the decoder mostly s
 (sums of the embeddings of what covers each cell) instead of the vision tower's, with a probability
 falling from 1 to 0 over `teacher_steps`, while `data.teacher_weight` pulls the tower's tokens towards
 those sums, and, with `data.retrieval_weight > 0`, the attention supervision (`retrieval.py`): one decoder
-head is told where the object an answer names is among the image tokens. Validation always sees the
-tower's tokens.
+head is told where the object an answer names is among the image tokens. With `data.tower_steps > 0` a
+vision stage comes first: only the tower, its projector and the dense head train, on the dense loss alone,
+and the decoder's warmup and cosine schedule (and the teacher's hold) start after it. Validation always sees
+the tower's tokens and logs the dense head's readouts of them (val/tower_type, val/tower_id: the id among
+its type's objects, val/tower_direction); the vision stage's validations answer no questions (val/perception
+is NaN there, which best.ckpt ranks last).
 Validation generates an answer to each held-out perception question — constrained to the answer grammar
 for `list` / `describe` questions, a few free tokens for `gomo` ones — scores it with `score.py` and
 logs val/loss, val/object_f1, val/cells_exact, val/cell_iou, val/direction, val/mark_id,
@@ -19,7 +23,7 @@ from __future__ import annotations
 
 import math
 
-from degusta_learn.finetune.loss import lm_loss
+from degusta_learn.finetune.loss import lm_loss, unwrap
 from degusta_learn.finetune.module import FinetuneModule
 from degusta_learn.finetune.pretrain.retrieval import KEYS as RETRIEVAL_KEYS
 
@@ -31,6 +35,8 @@ def monitor_keys(cfg) -> set[str]:
     keys = {"train/loss"} | ({"train/dense"} if cfg.data.dense_weight > 0 else set())
     keys |= {"train/pull", "train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
     keys |= {"train/retrieval"} if cfg.data.retrieval_weight > 0 else set()
+    if cfg.data.val_examples > 0 and cfg.data.dense_weight > 0:
+        keys |= {"val/tower_type", "val/tower_id", "val/tower_direction"}
     if cfg.data.val_examples > 0:
         keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
                                       "mark_id", "parse_rate", "perception")}
@@ -53,8 +59,10 @@ class PerceptionModule(FinetuneModule):
         if self.dense_weight > 0:
             hidden = model.config.get_text_config().hidden_size
             self.dense = DenseHead(hidden, n_labels, side)
+        self.tower_steps = cfg.data.tower_steps
         if cfg.data.teacher_steps > 0:
-            self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps, cfg.data.teacher_hold)
+            self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps,
+                                         cfg.data.teacher_hold + self.tower_steps)
         if self.dense is not None or self.teacher is not None:
             projector_of(model).register_forward_hook(self._capture)
         self.retrieval = None
@@ -65,13 +73,53 @@ class PerceptionModule(FinetuneModule):
 
     def _capture(self, module, inputs, output):
         self._tokens = output  # (n_images, tokens, hidden): the vision tower's image tokens
-        if self.teacher is not None and self.training:
+        if self.teacher is not None and self.training and not self.vision_stage:
             return self.teacher.replace(output, self.global_step)  # what the decoder sees instead
         return None
+
+    @property
+    def vision_stage(self) -> bool:
+        """True during the first `data.tower_steps` steps (only the tower trains, on the dense loss)."""
+        return self.global_step < self.tower_steps
+
+    def configure_optimizers(self):
+        """`FinetuneModule`'s AdamW and schedule; with a vision stage, the decoder's parameters (everything but
+        the tower, its projector and the dense head) get their own warmup and cosine, starting after it."""
+        out = super().configure_optimizers()
+        if self.tower_steps <= 0:
+            return out
+        import torch
+
+        from degusta_learn.finetune.pretrain.dense import projector_of
+        from degusta_learn.optim import warmup_factor
+
+        opt, o = out["optimizer"], self.cfg.optim
+        seen = {id(p) for m in (unwrap(self.model).model.vision_tower, projector_of(unwrap(self.model)), self.dense)
+                for p in m.parameters()}
+        vision = [p for g in opt.param_groups for p in g["params"] if id(p) in seen]
+        decoder = [p for g in opt.param_groups for p in g["params"] if id(p) not in seen]
+        opt = torch.optim.AdamW([{"params": vision, "name": "vision"}, {"params": decoder, "name": "decoder"}],
+                                lr=o.lr, weight_decay=o.weight_decay, betas=(0.9, o.beta2))
+        total, start = int(self.trainer.estimated_stepping_batches), self.tower_steps
+        lambdas = [lambda step: warmup_factor(o, step, total),
+                   lambda step: 0.0 if step < start else warmup_factor(o, step - start, total - start)]
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambdas)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def _vision_step(self, batch, targets, keep):
+        """One step of the vision stage: the tower's tokens of the batch's images and the dense loss alone."""
+        self._tokens = None
+        unwrap(self.model).model.get_image_features(pixel_values=batch["pixel_values"])
+        dense = self.dense.loss(self._tokens, targets, keep)
+        bs = batch["input_ids"].shape[0]
+        self.log("train/dense", dense, prog_bar=True, batch_size=bs)
+        return dense
 
     def training_step(self, batch, batch_idx):
         batch = dict(batch)
         targets, keep = batch.pop("dense_targets", None), batch.pop("dense_keep", None)
+        if self.vision_stage:
+            return self._vision_step(batch, targets, keep)
         oracle_ids = batch.pop("oracle_ids", None)
         retrieval = [batch.pop(k, None) for k in RETRIEVAL_KEYS]
         if self.teacher is not None:
@@ -118,8 +166,17 @@ class PerceptionModule(FinetuneModule):
         from degusta_learn.finetune.pretrain.score import score_answer
 
         inputs, examples = batch
+        self._tokens = None
         loss, _ = lm_loss(self.model, inputs)
         self.log("val/loss", loss, batch_size=len(examples), sync_dist=True)
+        if self.dense is not None and self._tokens is not None:
+            read = self.dense.readouts(self._tokens, examples, self.catalog)
+            for key in ("type", "id", "direction"):
+                if read["cells"]:
+                    self.log(f"val/tower_{key}", read[key], batch_size=read["cells"], sync_dist=True)
+        if self.vision_stage:  # the decoder has not trained: no answers to score
+            self.log("val/perception", float("nan"), batch_size=len(examples), sync_dist=True)
+            return
         for ex in examples:
             self._val.append(score_answer(ex, self.answer(ex), self.catalog, self.grid))
 

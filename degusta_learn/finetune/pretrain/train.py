@@ -53,6 +53,10 @@ class PretrainData:
     """DataLoader worker processes rendering the scenes (0: in the main process)."""
     dense_weight: float = 0.05
     """Weight of the dense auxiliary loss on the image tokens (what covers each token, where it is); 0: off."""
+    tower_steps: int = bounded(0, 0, 10_000_000)
+    """A vision stage first: for these steps only the vision tower, its projector and the dense head train, on the
+    dense loss alone (the decoder is not run), on the curriculum's one-scene images. The curriculum, the teacher
+    and the decoder's own warmup and cosine schedule start after it; `trainer.max_steps` counts both stages."""
     teacher_steps: int = bounded(0, 0, 10_000_000)
     """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
     instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
@@ -88,6 +92,9 @@ class PretrainData:
                                "expected >= 0")
         if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
             raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
+        if self.tower_steps > 0 and self.dense_weight <= 0:
+            raise DegustaError("data.tower_steps: the vision stage trains the tower on the dense loss, which "
+                               "data.dense_weight: 0 turns off; set data.dense_weight > 0 or data.tower_steps: 0")
 
 
 @dataclass
@@ -121,7 +128,11 @@ class PretrainConfig:
             raise DegustaError(f"model.image_size: {self.model.image_size} px gives {self.model.tokens_per_side} x "
                                f"{self.model.tokens_per_side} image tokens, fewer than the grid's {need} cells per "
                                f"side; use at least {need * OUTPUT_STRIDE} px (or a coarser data.grid)")
-        d = self.data
+        d, t = self.data, self.trainer
+        if d.tower_steps > 0 and t.early_stopping_patience is not None:
+            raise DegustaError("trainer.early_stopping_patience: the validations of the vision stage "
+                               "(data.tower_steps) answer no questions, so val/perception is undefined there; set "
+                               "trainer.early_stopping_patience: null")
         if d.retrieval_weight > 0 and not (d.retrieval_layer < self.model.text_layers and
                                            d.retrieval_head < self.model.text_heads):
             key = "retrieval_layer" if d.retrieval_layer >= self.model.text_layers else "retrieval_head"
@@ -242,8 +253,9 @@ def run(cfg: PretrainConfig) -> Path:
             catalog, tables, grid, cfg.model.image_size, seed, n, d.mix, block, root, early)
         # a curriculum's first steps ask other questions; validation always asks the final mix's
         batches = steps * cfg.trainer.accumulate_grad_batches
-        train = make(cfg.seed, (batches + d.steps_per_epoch) * d.batch_size, d.batch_size,
-                     (d.curriculum_steps * d.batch_size, d.curriculum_mix))
+        train = make(cfg.seed, (batches + d.steps_per_epoch) * d.batch_size, d.batch_size,  # the vision stage's
+                     ((d.tower_steps + d.curriculum_steps) * cfg.trainer.accumulate_grad_batches * d.batch_size,
+                      d.curriculum_mix))  # images are one-scene
         val = make(cfg.seed + 1_000_003, d.val_examples, 1)
         labels = DenseLabels(catalog, side)
         module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
@@ -314,6 +326,10 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
              ("trainable", f"{total:,} parameters (all: pretraining from scratch)"),
              ("tokens per example", token_summary(counts, d.max_length, "sampled training examples")
               + (f"; validation: max {max(c['total'] for c in val_counts)} over {len(val_counts)}" if val_counts else ""))]
+    if d.tower_steps > 0:
+        lines.append(("vision stage", f"steps 0-{d.tower_steps - 1}: only the vision tower, projector and dense head "
+                                      f"train (dense loss alone, one-scene images); the decoder's curriculum "
+                                      f"({d.curriculum_steps} steps), teacher and warmup start at step {d.tower_steps}"))
     lines += dry_run_trainer_lines(t, monitor_keys(cfg), d.steps_per_epoch * d.batch_size, d.batch_size)
     on_gpu = t.accelerator in ("gpu", "cuda") or (t.accelerator == "auto" and torch.cuda.is_available())
     mem = vlm_memory(ModelConfig(dtype="float32"), LoraConfig(mode="full"), t, config, total, total, d.batch_size,
