@@ -21,7 +21,7 @@ from degusta_learn.scene import default_catalog, default_tables
 CONFIG = Path(__file__).parent.parent / "configs" / "pretrain_tiny_vlm_cpu.yaml"
 TINY = ["model.vision_channels=[8,8,16,16]", "model.vision_stem=8", "model.text_hidden=32", "model.text_layers=1",
         "model.text_heads=2", "model.text_kv_heads=1", "model.text_intermediate=64", "model.vocab_size=2048",
-        "data.retrieval_layer=0", "data.retrieval_head=1"]
+        "data.retrieval_layer=0", "data.retrieval_head=1", "data.tower_steps=0"]
 
 
 def _overrides(tmp_path: Path, steps: int) -> list[str]:
@@ -250,6 +250,10 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     table = [r for path in (run / "csv").rglob("metrics.csv") for r in csv.DictReader(path.open())]
     assert any(r.get("train/loss") for r in table) and any(r.get("train/teacher_p") == "1.0" for r in table)
     assert any(r.get("val/perception") not in (None, "", "nan") for r in table)
+    # and without a resume between them: the stages meet inside one epoch of one process
+    run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1", "trainer.run_name=q"])
+    table = list(csv.DictReader(next((tmp_path / "runs" / "q" / "csv").rglob("metrics.csv")).open()))
+    assert [r["step"] for r in table if r.get("train/dense")] == ["0", "1"] and table[-1]["val/perception"]
 
 
 @pytest.mark.parametrize("extra, key", [(["data.tower_steps=2", "data.dense_weight=0"], "data.tower_steps"),

@@ -112,8 +112,8 @@ class PerceptionModule(FinetuneModule):
         unwrap(self.model).model.get_image_features(pixel_values=batch["pixel_values"])
         dense = self.dense.loss(self._tokens, targets, keep)
         bs = batch["input_ids"].shape[0]
-        self.log("train/dense", dense, prog_bar=True, batch_size=bs)
-        return dense
+        self.log("train/dense", dense, batch_size=bs)  # as training_step logs it: Lightning refuses a key logged
+        return dense                                    # with other arguments within one epoch (the stage's end)
 
     def training_step(self, batch, batch_idx):
         batch = dict(batch)
