@@ -263,3 +263,23 @@ def test_a_vision_stage_that_cannot_work_is_refused_before_anything_is_written(t
     with pytest.raises(DegustaError, match=key):
         run_train(CONFIG, _overrides(tmp_path, 4) + extra)
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("tower_steps", [0, 3])
+def test_after_a_vision_stage_the_pull_trains_the_projector_not_the_tower(tower_steps):
+    from degusta_learn.finetune.pretrain.module import PerceptionModule
+
+    model, processor = _tiny_base()
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    cfg = load_config(PretrainConfig, CONFIG, TINY + [f"data.tower_steps={tower_steps}"])
+    module = PerceptionModule(model, processor, cfg, catalog, Grid(8, 8), DenseLabels(catalog, 8).n_labels)
+    exs = [PerceptionExamples(catalog, tables, Grid(8, 8), 256, 0, 2, TaskMix(), block=1)[i] for i in range(2)]
+    module.teacher.ids, module.teacher.keep = OracleTokens(catalog, processor.tokenizer, Grid(8, 8))(exs), \
+        DenseLabels(catalog, 8)(exs)[1]
+    pixels = processor.image_processor(images=[getattr(im, "image", im) for ex in exs for im in ex.prompt.images],
+                                       return_tensors="pt")["pixel_values"]
+    model.model.get_image_features(pixel_values=pixels)
+    module.teacher.pull(module._pulled()).backward()
+    tower = [p.grad for p in model.model.vision_tower.parameters()]
+    assert all(g is not None and g.abs().sum() > 0 for g in (p.grad for p in projector_of(model).parameters()))
+    assert all(g is None or g.abs().sum() == 0 for g in tower) == (tower_steps > 0)
