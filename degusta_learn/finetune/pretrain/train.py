@@ -2,7 +2,7 @@
 
 Usage (the shipped base: about 90 minutes on a 2-core CPU, resumable by running the same command again):
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml
-    degusta train --config configs/pretrain_tiny_vlm_cpu.yaml --set trainer.max_steps=40 \
+    degusta train --config configs/pretrain_tiny_vlm_cpu.yaml --set trainer.max_steps=40 --set data.tower_steps=20 \
         --set data.steps_per_epoch=20 --set trainer.run_name=pretrain_smoke --set export=runs/base_smoke   # smoke
 
 What it does: builds a FastVLM of `model:` sizes with random weights and the domain tokenizer (saved
