@@ -138,10 +138,10 @@ def test_a_tokenizer_too_small_for_the_teacher_is_refused_before_anything_is_wri
 def test_teacher_needs_one_token_per_cell():
     with pytest.raises(DegustaError, match="data.teacher_steps: the dense loss, the oracle teacher and the attention"):
         load_config(PretrainConfig, CONFIG, ["data.grid.rows=6", "data.grid.cols=6", "data.dense_weight=0",
-                                             "data.teacher_steps=10"])
+                                             "data.tower_steps=0", "data.teacher_steps=10"])
     with pytest.raises(DegustaError, match="data.retrieval_weight: the dense loss"):
         load_config(PretrainConfig, CONFIG, ["data.grid.rows=6", "data.grid.cols=6", "data.dense_weight=0",
-                                             "data.teacher_steps=0"])
+                                             "data.tower_steps=0", "data.teacher_steps=0"])
 
 
 @pytest.mark.slow
