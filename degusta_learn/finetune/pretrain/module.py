@@ -86,19 +86,18 @@ class PerceptionModule(FinetuneModule):
     def configure_optimizers(self):
         """`FinetuneModule`'s AdamW and schedule; with a vision stage, the decoder's parameters (everything but
         the tower, its projector and the dense head) get their own warmup and cosine, starting after it."""
-        out = super().configure_optimizers()
         if self.tower_steps <= 0:
-            return out
+            return super().configure_optimizers()
         import torch
 
         from degusta_learn.finetune.pretrain.dense import projector_of
         from degusta_learn.optim import warmup_factor
 
-        opt, o = out["optimizer"], self.cfg.optim
-        seen = {id(p) for m in (unwrap(self.model).model.vision_tower, projector_of(unwrap(self.model)), self.dense)
-                for p in m.parameters()}
-        vision = [p for g in opt.param_groups for p in g["params"] if id(p) in seen]
-        decoder = [p for g in opt.param_groups for p in g["params"] if id(p) not in seen]
+        o, hf = self.cfg.optim, unwrap(self.model)
+        seen = {id(p) for m in (hf.model.vision_tower, projector_of(hf), self.dense) for p in m.parameters()}
+        trained = [p for p in self.parameters() if p.requires_grad]
+        vision = [p for p in trained if id(p) in seen]
+        decoder = [p for p in trained if id(p) not in seen]
         opt = torch.optim.AdamW([{"params": vision, "name": "vision"}, {"params": decoder, "name": "decoder"}],
                                 lr=o.lr, weight_decay=o.weight_decay, betas=(0.9, o.beta2))
         total, start = int(self.trainer.estimated_stepping_batches), self.tower_steps
