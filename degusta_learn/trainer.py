@@ -622,6 +622,23 @@ def _monitor_guard(monitor: str):
     return MonitorGuard()
 
 
+def run_precision(cfg: TrainerConfig) -> str:
+    """The precision Lightning gets: `cfg.precision`, except bfloat16 on a CPU that has no native bfloat16
+    (AVX512-BF16 or AMX), which runs it emulated: measured on an AVX2 EPYC, a 3x3 convolution 127x and a matmul
+    60x slower than float32. There it is 32-true, with a note (the same config stays fast where bf16 is native)."""
+    import torch
+
+    if cfg.precision not in ("bf16-mixed", "bf16") or cfg.accelerator not in ("cpu", "auto"):
+        return cfg.precision
+    if cfg.accelerator == "auto" and torch.cuda.is_available():
+        return cfg.precision
+    if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        return cfg.precision
+    print(f"degusta: note: trainer.precision {cfg.precision}: this CPU has no native bfloat16 (AVX512-BF16/AMX) "
+          f"and emulates it ~60x slower than float32; training in 32-true", file=sys.stderr)
+    return "32-true"
+
+
 def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
     """A `lightning.Trainer` writing into `run`: loggers, checkpointing, progress bar, devices.
 
@@ -658,7 +675,7 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
     try:
         return L.Trainer(
             accelerator=cfg.accelerator, devices=cfg.devices, num_nodes=cfg.num_nodes, strategy=cfg.strategy,
-            precision=cfg.precision,
+            precision=run_precision(cfg),
             max_epochs=cfg.max_epochs, max_steps=cfg.max_steps, accumulate_grad_batches=cfg.accumulate_grad_batches,
             gradient_clip_val=cfg.gradient_clip_val, log_every_n_steps=cfg.log_every_n_steps,
             val_check_interval=cfg.val_check_interval, check_val_every_n_epoch=cfg.check_val_every_n_epoch,

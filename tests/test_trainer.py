@@ -93,3 +93,20 @@ def test_bad_trainer_config_names_the_key(data, message):
 def test_val_check_interval_keeps_int_and_float():
     assert from_dict(TrainerConfig, {"val_check_interval": 50}).val_check_interval == 50
     assert isinstance(from_dict(TrainerConfig, {"val_check_interval": 0.5}).val_check_interval, float)
+
+
+@pytest.mark.parametrize("native, accelerator, precision, expected", [
+    (False, "cpu", "bf16-mixed", "32-true"),   # emulated bfloat16: ~60x slower than float32 on an AVX2 CPU
+    (False, "cpu", "bf16", "32-true"),
+    (True, "cpu", "bf16-mixed", "bf16-mixed"),  # AVX512-BF16 / AMX: kept
+    (False, "cpu", "32-true", "32-true"),
+    (False, "gpu", "bf16-mixed", "bf16-mixed"),  # a GPU's own business
+])
+def test_bfloat16_on_a_cpu_without_native_support_trains_in_float32(monkeypatch, capsys, native, accelerator,
+                                                                     precision, expected):
+    from degusta_learn.trainer import run_precision
+
+    monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: native)
+    cfg = TrainerConfig(accelerator=accelerator, precision=precision)
+    assert run_precision(cfg) == expected
+    assert ("no native bfloat16" in capsys.readouterr().err) == (expected != precision)
