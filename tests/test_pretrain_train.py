@@ -256,7 +256,27 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     assert [r["step"] for r in table if r.get("train/dense")] == ["0", "1"] and table[-1]["val/perception"]
 
 
+def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path):
+    steps = ["data.tower_steps=1", "data.freeze_tower=true", "data.steps_per_epoch=1", "data.curriculum_steps=1"]
+    run = tmp_path / "runs" / "p"
+
+    def weights():
+        state = torch.load(run / "last.ckpt", weights_only=True, map_location="cpu")["state_dict"]
+        return {k: v.clone() for k, v in state.items()}
+
+    run_train(CONFIG, _overrides(tmp_path, 1) + steps)  # the vision stage alone: the tower trains
+    staged = weights()
+    run_train(CONFIG, _overrides(tmp_path, 3) + steps)  # resumed: two decoder steps with a validation between
+    after = weights()
+    tower = [k for k in staged if ".vision_tower." in k]
+    assert any("running_mean" in k for k in tower)  # BatchNorm statistics are compared too
+    assert all(torch.equal(staged[k], after[k]) for k in tower)
+    changed = {k for k in staged if not torch.equal(staged[k], after[k])}
+    assert any("multi_modal_projector" in k for k in changed) and any("language_model" in k for k in changed)
+
+
 @pytest.mark.parametrize("extra, key", [(["data.tower_steps=2", "data.dense_weight=0"], "data.tower_steps"),
+                                        (["data.freeze_tower=true"], "data.freeze_tower"),
                                         (["data.tower_steps=2", "trainer.early_stopping_patience=2"],
                                          "trainer.early_stopping_patience")])
 def test_a_vision_stage_that_cannot_work_is_refused_before_anything_is_written(tmp_path, extra, key):

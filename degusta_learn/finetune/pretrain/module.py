@@ -9,7 +9,8 @@ falling from 1 to 0 over `teacher_steps`, while `data.teacher_weight` pulls the 
 those sums, and, with `data.retrieval_weight > 0`, the attention supervision (`retrieval.py`): one decoder
 head is told where the object an answer names is among the image tokens. With `data.tower_steps > 0` a
 vision stage comes first: only the tower, its projector and the dense head train, on the dense loss alone,
-and the decoder's warmup and cosine schedule (and the teacher's hold) start after it. Validation always sees
+and the decoder's warmup and cosine schedule (and the teacher's hold) start after it; with `data.freeze_tower`
+the tower then stays as the stage left it. Validation always sees
 the tower's tokens and logs the dense head's readouts of them (val/tower_type, val/tower_id: the id among
 its type's objects, val/tower_direction); the vision stage's validations answer no questions (val/perception
 is NaN there, which best.ckpt ranks last).
@@ -24,7 +25,7 @@ from __future__ import annotations
 import math
 
 from degusta_learn.finetune.loss import lm_loss, unwrap
-from degusta_learn.finetune.module import FinetuneModule
+from degusta_learn.finetune.module import FinetuneModule, freeze_batch_norms
 from degusta_learn.finetune.pretrain.retrieval import KEYS as RETRIEVAL_KEYS
 
 GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain tokenizer) and the stop token
@@ -105,6 +106,15 @@ class PerceptionModule(FinetuneModule):
                    lambda step: 0.0 if step < start else warmup_factor(o, step - start, total - start)]
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambdas)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def on_train_batch_start(self, batch, batch_idx) -> None:
+        """With `data.freeze_tower`, freeze the tower once the vision stage is over (again after a resume)."""
+        if not (self.cfg.data.freeze_tower and self.tower_steps > 0) or self.vision_stage:
+            return
+        tower = unwrap(self.model).model.vision_tower
+        if any(p.requires_grad for p in tower.parameters()):
+            tower.requires_grad_(False)
+        freeze_batch_norms(tower)  # its BatchNorms keep the stage's statistics (Lightning re-enters train mode)
 
     def _pulled(self):
         """The image tokens the teacher's pull acts on. After a vision stage the pull trains the projector only, on

@@ -57,6 +57,10 @@ class PretrainData:
     """A vision stage first: for these steps only the vision tower, its projector and the dense head train, on the
     dense loss alone (the decoder is not run), on the curriculum's one-scene images. The curriculum, the teacher
     and the decoder's own warmup and cosine schedule start after it; `trainer.max_steps` counts both stages."""
+    freeze_tower: bool = False
+    """After the vision stage, keep the vision tower as the stage left it (weights and BatchNorm statistics); the
+    projector, the dense head and the decoder go on training. Unfrozen, the decoder's answer loss reaches the tower
+    through its tokens and erased the object ids the stage had taught it (docs/tiny_base.md, point 16)."""
     teacher_steps: int = bounded(0, 0, 10_000_000)
     """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
     instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
@@ -95,6 +99,10 @@ class PretrainData:
         if self.tower_steps > 0 and self.dense_weight <= 0:
             raise DegustaError("data.tower_steps: the vision stage trains the tower on the dense loss, which "
                                "data.dense_weight: 0 turns off; set data.dense_weight > 0 or data.tower_steps: 0")
+        if self.freeze_tower and self.tower_steps <= 0:
+            raise DegustaError("data.freeze_tower: freezes the vision tower after the vision stage, and "
+                               "data.tower_steps is 0 (no stage: the tower would stay random); set data.tower_steps "
+                               "> 0 or data.freeze_tower: false")
 
 
 @dataclass
@@ -329,7 +337,8 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     if d.tower_steps > 0:
         lines.append(("vision stage", f"steps 0-{d.tower_steps - 1}: only the vision tower, projector and dense head "
                                       f"train (dense loss alone, one-scene images); the decoder's curriculum "
-                                      f"({d.curriculum_steps} steps), teacher and warmup start at step {d.tower_steps}"))
+                                      f"({d.curriculum_steps} steps), teacher and warmup start at step {d.tower_steps}"
+                                      + ("; the tower is then frozen" if d.freeze_tower else "")))
     lines += dry_run_trainer_lines(t, monitor_keys(cfg), d.steps_per_epoch * d.batch_size, d.batch_size)
     on_gpu = t.accelerator in ("gpu", "cuda") or (t.accelerator == "auto" and torch.cuda.is_available())
     mem = vlm_memory(ModelConfig(dtype="float32"), LoraConfig(mode="full"), t, config, total, total, d.batch_size,
