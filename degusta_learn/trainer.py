@@ -622,6 +622,21 @@ def _monitor_guard(monitor: str):
     return MonitorGuard()
 
 
+@contextlib.contextmanager
+def torch_threads(n: int | None):
+    """torch's CPU threads set to `n` (None: unchanged) inside the block, and restored after it: a step that
+    wants one thread must not leave every later step of the same process (quickstart's VLM fine-tuning) on one."""
+    import torch
+
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def run_precision(cfg: TrainerConfig) -> str:
     """The precision Lightning gets: `cfg.precision`, except bfloat16 on a CPU that has no native bfloat16
     (AVX512-BF16 or AMX), which runs it emulated: measured on an AVX2 EPYC, a 3x3 convolution 127x and a matmul

@@ -110,3 +110,15 @@ def test_bfloat16_on_a_cpu_without_native_support_trains_in_float32(monkeypatch,
     cfg = TrainerConfig(accelerator=accelerator, precision=precision)
     assert run_precision(cfg) == expected
     assert ("no native bfloat16" in capsys.readouterr().err) == (expected != precision)
+
+
+def test_a_step_on_fewer_torch_threads_gives_them_back():
+    from degusta_learn.trainer import torch_threads
+
+    before = torch.get_num_threads()
+    with torch_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError), torch_threads(1):
+        raise RuntimeError("a failed step")
+    assert torch.get_num_threads() == before

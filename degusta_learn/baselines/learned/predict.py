@@ -110,9 +110,14 @@ def predict_episodes(model: SlotModel, ds: Dataset, episodes: list[Episode], pop
 
 
 def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    """MethodSpec.run of method `learned`."""
-    if cfg.num_threads:
-        torch.set_num_threads(cfg.num_threads)
+    """MethodSpec.run of method `learned` (on `cfg.num_threads` torch threads, restored after)."""
+    from degusta_learn.trainer import torch_threads
+
+    with torch_threads(cfg.num_threads):
+        return _run(cfg, ds, episodes)
+
+
+def _run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise DegustaError(f"device: {cfg.device!r} requested but no CUDA device is available (use device: cpu)")
     model, hp = load_model(cfg.checkpoint, cfg.device)

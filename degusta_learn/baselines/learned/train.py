@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import torch
 
 from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig, split_of
 from degusta_learn.baselines.learned.features import Vocab
@@ -113,9 +112,9 @@ def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> No
 
 def train(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> Path:
     """TrainerSpec.run of kind `learned`: train and return the run folder (seeded before the model is built)."""
-    if cfg.num_threads:
-        torch.set_num_threads(cfg.num_threads)
+    from degusta_learn.trainer import torch_threads
+
     monitors = monitor_keys(cfg.data.val_contexts)
-    with training_run(cfg.trainer, monitors):
+    with torch_threads(cfg.num_threads), training_run(cfg.trainer, monitors):
         module, dm = build(cfg, ds)
         return fit(module, dm, cfg.trainer, full_config=cfg, monitors=monitors)
