@@ -23,6 +23,15 @@ SHIPPED_DIR = Path(__file__).resolve().parent / "configs"
 PURPOSE_CHARS = 110  # a purpose longer than this is cut at a word boundary and ends with "…"
 
 
+BASE_DIR = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny_vlm_base"
+"""The perception-pretrained tiny base VLM a source checkout ships (configs/pretrain_tiny_vlm_cpu.yaml built it)."""
+
+
+def shipped_base() -> Path | None:
+    """The shipped tiny base's folder, or None where it is absent (an installed wheel carries no checkpoints)."""
+    return BASE_DIR if (BASE_DIR / "config.json").is_file() and (BASE_DIR / "model.safetensors").is_file() else None
+
+
 def shipped_names() -> list[str]:
     """The names (file stems) of every shipped config, sorted."""
     return sorted(p.stem for p in SHIPPED_DIR.glob("*.yaml"))

@@ -8,9 +8,11 @@ Steps (each prints what it does; a re-run reuses what an interrupted run finishe
   1. generate the SYNTHETIC naturalistic dataset;
   2. pick the episodes: 20 test participants, one target trial each, at context 0, 2 and 4 (60);
   3. train the learned slot model (configs/learned_cpu.yaml, about 2 minutes);
-  4. fine-tune the tiny offline VLM with LoRA (CPU config; no pretrained weights exist offline);
-  5. compare heuristic baselines, the oracle, the learned model, and the tiny VLM zero-shot and
-     fine-tuned through the `hf` backend (plus zero-shot GPT-4o MOGMA with --with-api) in one report.
+  4. LoRA-fine-tune the shipped tiny base VLM (checkpoints/tiny_vlm_base, pretrained here on perception only;
+     configs/finetune_tiny_base_cpu.yaml) on the train participants; with --small, or where the base is absent
+     (an installed wheel), a random-weight tiny VLM (configs/finetune_tiny_cpu.yaml): the pipeline, not a result;
+  5. compare heuristic baselines, the oracle, the learned model, and that VLM zero-shot and fine-tuned
+     through the `hf` backend (plus zero-shot GPT-4o MOGMA with --with-api) in one report.
 
 Every config it runs is written to `<out>/configs/` so that each step can be re-run or changed by hand.
 """
@@ -28,7 +30,7 @@ from degusta_learn.config import apply_overrides, read_yaml
 from degusta_learn.fileio import atomic_write_text
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.scene import Episode, load_dataset, make_episodes, participants_in, write_episodes
-from degusta_learn.shipped import shipped_config
+from degusta_learn.shipped import BASE_DIR, shipped_base, shipped_config
 
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
 
@@ -103,15 +105,26 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
                                                 f"out={runs / 'learned' / 'predictions.jsonl'}"], "degusta predict")
     entries.append(MethodEntry(name="learned", config=str(path)))
 
-    step("4/5 fine-tuning the tiny offline VLM with LoRA (configs/finetune_tiny_cpu.yaml)")
-    tiny = ckpt / "tiny" / "idefics3"
-    finetune = _config("finetune_tiny_cpu", cfg_dir,
-                       [f"dataset={data_dir}", f"model.name={tiny}", f"trainer.run_dir={ckpt}",
-                        "trainer.run_name=finetune_tiny"] + (SMALL_FINETUNE if small else []), "degusta train")
+    base = None if small else shipped_base()
+    if base is not None:
+        step(f"4/5 LoRA fine-tuning the shipped tiny base VLM ({base}: pretrained on perception only) on the "
+             "train participants (configs/finetune_tiny_base_cpu.yaml)")
+        model, prefix, row = base, "base", "tiny_base"
+        finetune = _config("finetune_tiny_base_cpu", cfg_dir,
+                           [f"dataset={data_dir}", f"model.name={base}", f"trainer.run_dir={ckpt}",
+                            "trainer.run_name=finetune_tiny_base"] + QUICK_BASE_FINETUNE, "degusta train")
+    else:
+        why = "--small" if small else f"no shipped base at {BASE_DIR}"
+        step(f"4/5 fine-tuning a RANDOM-weight tiny VLM with LoRA ({why}: the pipeline, not a result) "
+             "(configs/finetune_tiny_cpu.yaml)")
+        model, prefix, row = ckpt / "tiny" / "idefics3", "tiny", "tiny_vlm"
+        finetune = _config("finetune_tiny_cpu", cfg_dir,
+                           [f"dataset={data_dir}", f"model.name={model}", f"trainer.run_dir={ckpt}",
+                            "trainer.run_name=finetune_tiny"] + (SMALL_FINETUNE if small else []), "degusta train")
     ft_dir = run_train(finetune, [])
-    for name, adapter in (("tiny_vlm_zeroshot", None), ("tiny_vlm_finetuned", ft_dir / "best_adapter")):
-        cfg_name = "predict_hf_tiny_zeroshot" if adapter is None else "predict_hf_tiny_finetuned"
-        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={tiny}",
+    for name, adapter in ((f"{row}_zeroshot", None), (f"{row}_finetuned", ft_dir / "best_adapter")):
+        cfg_name = f"predict_hf_{prefix}_" + ("zeroshot" if adapter is None else "finetuned")
+        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={model}",
                                            f"backend.adapter={adapter if adapter else 'null'}",
                                            f"out={runs / name / 'predictions.jsonl'}"], "degusta predict")
         entries.append(MethodEntry(name=name, config=str(path)))
@@ -135,6 +148,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
 QUICK_PARTICIPANTS = 20
 QUICK_LEARNED: list[str] = []  # the shipped CPU config as it is (3 epochs, ~2 minutes)
 SMALL_LEARNED = ["trainer.max_epochs=1", "data.repeats=1"]
+QUICK_BASE_FINETUNE = ["trainer.max_steps=174", "trainer.val_check_interval=1.0"]  # 2 epochs of the shipped config's 4
 SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4"]
 
 

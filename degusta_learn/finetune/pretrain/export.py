@@ -68,7 +68,8 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
         catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
         training={"command": COMMAND, "steps": steps, "batch_size": cfg.data.batch_size,
                   "examples": steps * cfg.data.batch_size if steps else None, "lr": cfg.optim.lr,
-                  "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix)},
+                  "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
+                  "tower_steps": cfg.data.tower_steps, "freeze_tower": cfg.data.freeze_tower},
         validation_curve=curve))
     if (run_dir / "config.yaml").is_file():
         shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
@@ -88,6 +89,16 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
 
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def _stages(t: dict) -> str:
+    """Which weights trained when (the model card's words for data.tower_steps / data.freeze_tower)."""
+    if not t.get("tower_steps"):
+        return "all weights trained together"
+    after = ("the tower frozen, the projector and the decoder trained" if t.get("freeze_tower")
+             else "all weights")
+    return (f"first a vision stage of {t['tower_steps']} steps (the vision tower and projector alone, on a dense "
+            f"per-token loss: what covers each grid cell, its id and direction), then {after}")
 
 
 def write_card(folder: Path, name: str | None = None, path: Path | None = None) -> Path:
@@ -137,7 +148,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         "## How it was trained", "",
         f"`{t['command']}` (the resolved config is `pretrain_config.yaml` in this folder): {t['steps']} steps "
         f"of {t['batch_size']} examples ({t['examples']} examples, every one a freshly rendered random scene), "
-        f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, all weights trained, fp32 on a CPU. "
+        f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, {_stages(t)}, on a CPU. "
         f"Catalog and tables: {meta['catalog']}. Task mix: {t['mix']}.", "",
         "## Perception scores", "",
     ]
@@ -166,6 +177,10 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         "catalog needs pretraining again (`dataset:` in the config points at your catalog and tables).",
         f"- Grid-marked images with the {meta['grid']['rows']} x {meta['grid']['cols']} grid at {a['image_size']} px "
         "only; no unmarked (x, y) answers, no free text.",
+        *([f"- It does not yet name objects reliably: held-out object-set F1 {bench['scores']['object_f1']:.2f} and "
+           f"GoMO mark id {bench['scores']['mark_id']:.2f} (target 0.9). It reads types, cells and directions better "
+           "than ids (which object of a type is which); docs/tiny_base.md says why and what to try."]
+          if bench and bench["scores"].get("object_f1", 1.0) < 0.5 else []),
         "- A plate's direction cannot be seen (round and square plates look the same turned around); "
         "directions are scored without plates.",
         "- Tiny and trained on synthetic images: a tool for CPU experiments and tests, not a result about "

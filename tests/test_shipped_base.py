@@ -1,0 +1,51 @@
+"""The shipped tiny base VLM (checkpoints/tiny_vlm_base): a plain Hugging Face folder that loads offline and answers.
+
+The one test that loads the shipped weights (every other test builds its model tiny): its files and size, the plain
+transformers Auto classes, the toolkit's loader, and one constrained perception answer that parses.
+"""
+
+from __future__ import annotations
+
+import json
+
+from degusta_learn.shipped import BASE_DIR, shipped_base
+
+MAX_MB = 40
+
+
+def test_the_shipped_base_is_complete_and_small():
+    assert shipped_base() == BASE_DIR, f"{BASE_DIR}: the shipped base is missing (config.json, model.safetensors)"
+    for name in ("config.json", "model.safetensors", "tokenizer.json", "processor_config.json", "README.md",
+                 "degusta_base.json", "pretrain_config.yaml", "perception.json"):
+        assert (BASE_DIR / name).is_file(), name
+    size = sum(p.stat().st_size for p in BASE_DIR.rglob("*") if p.is_file())
+    assert size <= MAX_MB * 2**20, f"{size / 2**20:.1f} MB"
+    card = (BASE_DIR / "README.md").read_text()
+    scores = json.loads((BASE_DIR / "perception.json").read_text())
+    assert scores["n_images"] >= 500 and "object-set F1" in card  # held-out scores are in the card
+
+
+def test_the_shipped_base_loads_offline_and_answers_one_perception_question(monkeypatch):
+    import torch
+    from transformers import AutoModelForImageTextToText, AutoProcessor
+
+    from degusta_learn.finetune.pretrain.score import score_answer
+    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import default_catalog, default_tables
+    from degusta_learn.vlm.generate import generate_answers
+    from degusta_learn.vlm.grammar import AnswerGrammar
+    from degusta_learn.vlm.load import load_vlm
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    model = AutoModelForImageTextToText.from_pretrained(BASE_DIR)
+    assert AutoProcessor.from_pretrained(BASE_DIR).tokenizer is not None and model.num_parameters() > 1e6
+    model, processor = load_vlm(str(BASE_DIR), device="cpu", dtype="float32")
+    catalog, grid = default_catalog(), Grid(8, 8)
+    meta = json.loads((BASE_DIR / "degusta_base.json").read_text())
+    mix = TaskMix(lists=0.0, describe=1.0, gomo=0.0, locate=0.0, describe_questions=1, scenes=[1.0, 0, 0, 0])
+    ex = PerceptionExamples(catalog, {t.id: t for t in default_tables()}, grid, meta["image_size"], 7, 1, mix)[0]
+    with torch.no_grad():
+        text = generate_answers(model, processor, ex.prompt, n=1, temperature=0.0, max_new_tokens=160,
+                                constrained=True, grammar=AnswerGrammar("grid", catalog, grid))[0].text
+    assert score_answer(ex, text, catalog, grid)["parsed"], text
