@@ -276,7 +276,6 @@ def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path):
 
 
 @pytest.mark.parametrize("extra, key", [(["data.tower_steps=2", "data.dense_weight=0"], "data.tower_steps"),
-                                        (["data.freeze_tower=true"], "data.freeze_tower"),
                                         (["data.tower_steps=2", "trainer.early_stopping_patience=2"],
                                          "trainer.early_stopping_patience")])
 def test_a_vision_stage_that_cannot_work_is_refused_before_anything_is_written(tmp_path, extra, key):

@@ -53,8 +53,9 @@ def test_token_trie_is_never_taken_from_a_dead_tokenizer_whose_id_was_reused():
         if id(tok) == old_id:
             break
         keep.append(tok)
-    assert id(tok) == old_id, "no tokenizer reused the freed address; the test cannot check the cache key"
     assert trie_words(token_trie(tok, alphabet)) == {"c", "cc"}
+    if id(tok) != old_id:  # the allocator (not the code) decides; seen in CI under memory pressure
+        pytest.skip("no tokenizer reused the freed address in this run; the cache key was not exercised")
 
 
 def test_token_trie_follows_added_tokens():

@@ -60,7 +60,8 @@ class PretrainData:
     freeze_tower: bool = False
     """After the vision stage, keep the vision tower as the stage left it (weights and BatchNorm statistics); the
     projector, the dense head and the decoder go on training. Unfrozen, the decoder's answer loss reaches the tower
-    through its tokens and erased the object ids the stage had taught it (docs/tiny_base.md, point 16)."""
+    through its tokens and erased the object ids the stage had taught it (docs/tiny_base.md, point 16). Without a
+    vision stage (`tower_steps: 0`) there is nothing to keep and it has no effect."""
     teacher_steps: int = bounded(0, 0, 10_000_000)
     """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
     instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
@@ -99,10 +100,6 @@ class PretrainData:
         if self.tower_steps > 0 and self.dense_weight <= 0:
             raise DegustaError("data.tower_steps: the vision stage trains the tower on the dense loss, which "
                                "data.dense_weight: 0 turns off; set data.dense_weight > 0 or data.tower_steps: 0")
-        if self.freeze_tower and self.tower_steps <= 0:
-            raise DegustaError("data.freeze_tower: freezes the vision tower after the vision stage, and "
-                               "data.tower_steps is 0 (no stage: the tower would stay random); set data.tower_steps "
-                               "> 0 or data.freeze_tower: false")
 
 
 @dataclass
