@@ -42,7 +42,7 @@ def plot_curve(curve: list[dict], out: Path) -> Path | None:
     ax.axhline(0.9, color="grey", lw=0.8, ls="--", label="target 0.9")
     ax.set(xlabel="training step", ylabel="validation score", ylim=(0, 1.02),
            title="Tiny base VLM: perception during pretraining (held-out validation)")
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="upper left", ncol=2)  # the curves end low on the right
     ax.grid(alpha=0.3)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-
 from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig, split_of
 from degusta_learn.baselines.learned.features import Vocab
 from degusta_learn.baselines.learned.module import KIND, LEARNED_OPTIM, LearnedModule, monitor_keys, population_pairs
