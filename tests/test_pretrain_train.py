@@ -256,8 +256,10 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     assert [r["step"] for r in table if r.get("train/dense")] == ["0", "1"] and table[-1]["val/perception"]
 
 
-def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path):
-    steps = ["data.tower_steps=1", "data.freeze_tower=true", "data.steps_per_epoch=1", "data.curriculum_steps=1"]
+@pytest.mark.parametrize("projector", [False, True])
+def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path, projector):
+    steps = ["data.tower_steps=1", "data.freeze_tower=true", "data.steps_per_epoch=1", "data.curriculum_steps=1",
+             f"data.freeze_projector={str(projector).lower()}", "data.teacher_steps=2"]
     run = tmp_path / "runs" / "p"
 
     def weights():
@@ -272,7 +274,18 @@ def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path):
     assert any("running_mean" in k for k in tower)  # BatchNorm statistics are compared too
     assert all(torch.equal(staged[k], after[k]) for k in tower)
     changed = {k for k in staged if not torch.equal(staged[k], after[k])}
-    assert any("multi_modal_projector" in k for k in changed) and any("language_model" in k for k in changed)
+    assert any("multi_modal_projector" in k for k in changed) != projector and any("language_model" in k for k in changed)
+    import csv
+
+    table = [r for path in (run / "csv").rglob("metrics.csv") for r in csv.DictReader(path.open())]
+    assert any(r.get("train/teacher_p") for r in table)  # the teacher still shows the decoder its tokens ...
+    assert any(r.get("train/pull") for r in table) != projector  # ... but pulls no frozen projector
+
+
+def test_a_frozen_projector_needs_a_frozen_tower(tmp_path):
+    with pytest.raises(DegustaError, match="data.freeze_projector"):
+        run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1", "data.freeze_tower=false", "data.freeze_projector=true"])
+    assert not (tmp_path / "runs").exists()
 
 
 @pytest.mark.parametrize("extra, key", [(["data.tower_steps=2", "data.dense_weight=0"], "data.tower_steps"),

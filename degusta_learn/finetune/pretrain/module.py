@@ -10,7 +10,7 @@ those sums, and, with `data.retrieval_weight > 0`, the attention supervision (`r
 head is told where the object an answer names is among the image tokens. With `data.tower_steps > 0` a
 vision stage comes first: only the tower, its projector and the dense head train, on the dense loss alone,
 and the decoder's warmup and cosine schedule (and the teacher's hold) start after it; with `data.freeze_tower`
-the tower then stays as the stage left it. Validation always sees
+the tower then stays as the stage left it, with `data.freeze_projector` its projector too. Validation always sees
 the tower's tokens and logs the dense head's readouts of them (val/tower_type, val/tower_id: the id among
 its type's objects, val/tower_direction); the vision stage's validations answer no questions (val/perception
 is NaN there, which best.ckpt ranks last).
@@ -34,7 +34,8 @@ GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain toke
 def monitor_keys(cfg) -> set[str]:
     """Every metric PerceptionModule logs under a PretrainConfig `cfg` (what `trainer.monitor` may name)."""
     keys = {"train/loss"} | ({"train/dense"} if cfg.data.dense_weight > 0 else set())
-    keys |= {"train/pull", "train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
+    keys |= {"train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
+    keys |= {"train/pull"} if cfg.data.teacher_steps > 0 and not _projector_frozen(cfg) else set()
     keys |= {"train/retrieval"} if cfg.data.retrieval_weight > 0 else set()
     if cfg.data.val_examples > 0 and cfg.data.dense_weight > 0:
         keys |= {"val/tower_type", "val/tower_id", "val/tower_direction"}
@@ -42,6 +43,11 @@ def monitor_keys(cfg) -> set[str]:
         keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
                                       "mark_id", "parse_rate", "perception")}
     return keys
+
+
+def _projector_frozen(cfg) -> bool:
+    """True when the projector stops training after a vision stage (`data.freeze_projector`)."""
+    return cfg.data.freeze_projector and cfg.data.freeze_tower and cfg.data.tower_steps > 0
 
 
 class PerceptionModule(FinetuneModule):
@@ -108,13 +114,17 @@ class PerceptionModule(FinetuneModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def on_train_batch_start(self, batch, batch_idx) -> None:
-        """With `data.freeze_tower`, freeze the tower once the vision stage is over (again after a resume)."""
+        """With `data.freeze_tower` (and `data.freeze_projector`), freeze the tower (and its projector) once the
+        vision stage is over (again after a resume)."""
         if not (self.cfg.data.freeze_tower and self.tower_steps > 0) or self.vision_stage:
             return
-        tower = unwrap(self.model).model.vision_tower
-        if any(p.requires_grad for p in tower.parameters()):
-            tower.requires_grad_(False)
-        freeze_batch_norms(tower)  # its BatchNorms keep the stage's statistics (Lightning re-enters train mode)
+        from degusta_learn.finetune.pretrain.dense import projector_of
+
+        hf = unwrap(self.model)
+        for part in (hf.model.vision_tower, projector_of(hf)) if _projector_frozen(self.cfg) else (hf.model.vision_tower,):
+            if any(p.requires_grad for p in part.parameters()):
+                part.requires_grad_(False)
+            freeze_batch_norms(part)  # BatchNorms keep the stage's statistics (Lightning re-enters train mode)
 
     def _pulled(self):
         """The image tokens the teacher's pull acts on. After a vision stage the pull trains the projector only, on
@@ -151,6 +161,7 @@ class PerceptionModule(FinetuneModule):
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         if self.teacher is not None:
             self.log("train/teacher_p", self.teacher.probability(self.global_step), batch_size=bs)
+        if self.teacher is not None and not _projector_frozen(self.cfg):
             pull = self.teacher.pull(self._pulled())
             if pull is not None:
                 self.log("train/pull", pull, batch_size=bs)

@@ -62,6 +62,11 @@ class PretrainData:
     projector, the dense head and the decoder go on training. Unfrozen, the decoder's answer loss reaches the tower
     through its tokens and erased the object ids the stage had taught it (docs/tiny_base.md, point 16). Without a
     vision stage (`tower_steps: 0`) there is nothing to keep and it has no effect."""
+    freeze_projector: bool = False
+    """With `freeze_tower`, keep the projector as the stage left it too: the decoder then learns to read the image
+    tokens the stage made, which tell object ids apart. Trainable, the projector lost them within 300 steps once the
+    decoder's answer loss reached it (id readout 0.55 -> 0.06, docs/tiny_base.md, point 17). The teacher's pull,
+    which trains the projector only after a stage, is then off (the decoder still sees the teacher's tokens)."""
     teacher_steps: int = bounded(0, 0, 10_000_000)
     """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
     instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
@@ -97,6 +102,9 @@ class PretrainData:
                                "expected >= 0")
         if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
             raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
+        if self.freeze_projector and not self.freeze_tower:
+            raise DegustaError("data.freeze_projector: a frozen projector over a tower that goes on training would read "
+                               "tokens the stage never made; set data.freeze_tower: true as well")
         if self.tower_steps > 0 and self.dense_weight <= 0:
             raise DegustaError("data.tower_steps: the vision stage trains the tower on the dense loss, which "
                                "data.dense_weight: 0 turns off; set data.dense_weight > 0 or data.tower_steps: 0")
