@@ -532,7 +532,7 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
         run.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise DegustaError(f"trainer.run_dir: cannot create the run folder {run} ({e.strerror or e})") from None
-    for stale in run.glob(f"{TMP_PREFIX}*"):  # a checkpoint or export folder write a kill interrupted
+    for stale in run.glob(f"{TMP_PREFIX}*"):  # a checkpoint write a kill interrupted (export folders: outdir)
         with contextlib.suppress(OSError):
             if stale.is_dir() and not stale.is_symlink():
                 shutil.rmtree(stale)

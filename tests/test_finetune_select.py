@@ -17,7 +17,8 @@ from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune import module as fm
 from degusta_learn.finetune.config import FinetuneConfig
-from degusta_learn.finetune.export import SELECTION_FILE, replace_folder
+from degusta_learn.finetune.export import MODEL_FOLDER, SELECTION_FILE
+from degusta_learn.outdir import write_folder
 from degusta_learn.finetune.field_scores import field_counts
 from degusta_learn.methods import run_train
 from degusta_learn.prompting.answers import AnswerItem, answer_items
@@ -163,19 +164,20 @@ def test_validation_stats_show_a_one_object_answer_for_what_it_is():
     assert set(stats) <= fm.monitor_keys(load_config(FinetuneConfig, None, ["eval.report_unconstrained=true"]))
 
 
-def test_replace_folder_is_all_or_nothing(tmp_path):
+def test_a_weights_folder_is_written_all_or_nothing_and_keeps_the_users_files(tmp_path):
     out = tmp_path / "best_adapter"
-    replace_folder(out, lambda d: (d / "w.txt").write_text("old"))
+    with write_folder(out, MODEL_FOLDER) as d:
+        (d / "adapter_model.safetensors").write_text("old")
+    (out / "notes.md").write_text("mine")
 
-    def broken(d: Path):
-        (d / "w.txt").write_text("half")
+    with pytest.raises(DegustaError, match="best_adapter.*No space left"), write_folder(out, MODEL_FOLDER) as d:
+        (d / "adapter_model.safetensors").write_text("half")
         raise OSError(28, "No space left on device")
-
-    with pytest.raises(OSError):
-        replace_folder(out, broken)
-    assert (out / "w.txt").read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["best_adapter"]
-    replace_folder(out, lambda d: (d / "v.txt").write_text("new"))
-    assert sorted(p.name for p in out.iterdir()) == ["v.txt"] and len(list(tmp_path.iterdir())) == 1
+    assert (out / "adapter_model.safetensors").read_text() == "old" and [p.name for p in tmp_path.iterdir()] == [out.name]
+    with write_folder(out, MODEL_FOLDER) as d:
+        (d / "adapter_config.json").write_text("{}")
+    assert sorted(p.name for p in out.iterdir()) == ["adapter_config.json", "notes.md"]
+    assert [p.name for p in tmp_path.iterdir()] == [out.name]
 
 
 class _Toy(L.LightningModule):

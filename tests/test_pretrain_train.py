@@ -177,7 +177,9 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 2
     run_train(CONFIG, _overrides(tmp_path, 6))
     assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 6
-    assert json.loads((out / "degusta_base.json").read_text())["training"]["steps"] == 6
+    training = json.loads((out / "degusta_base.json").read_text())["training"]
+    best = torch.load(tmp_path / "runs" / "p" / "best.ckpt", weights_only=True, map_location="cpu")["global_step"]
+    assert training["run_steps"] == 6 and training["steps"] == best  # the exported weights are the best's
     # the resumed run drew exactly the examples an uninterrupted one would: steps 2-5, none skipped or repeated
     assert seen == list(range(6 * 2)), seen
 

@@ -11,9 +11,9 @@ A fine-tuning run folder holds two exports of the weights, both loadable without
   configs load. Its `degusta_selection.json` says which validation it comes from (monitor, score, step).
 
 Every export also gets `degusta_finetune.json` (`finetune.train.write_meta`: how prompts were built).
-A folder is written into a hidden temp folder beside it and swapped in (`replace_folder`): a reader
-never sees a half-written adapter; a kill leaves the previous complete folder (or, in the instant between
-the two renames, a `.tmp-` folder that the next run's start removes and `sync_best` rewrites).
+A folder is staged beside it and swapped in whole (`outdir.write_folder` with `MODEL_FOLDER`): a reader never
+sees a half-written adapter; a kill leaves the previous complete folder (or, in the instant between the two
+renames, an `.old.tmp` folder that the next write puts back), and a file of the user's inside it is kept.
 
 Usage (what `finetune.train.run` and `FinetuneModule` do):
     save_last(module, run_dir)            # adapter/ or model/
@@ -23,58 +23,31 @@ Usage (what `finetune.train.run` and `FinetuneModule` do):
 from __future__ import annotations
 
 import contextlib
-import os
-import shutil
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import UMASK, atomic_write_json, read_json
-from degusta_learn.trainer import BEST, TMP_PREFIX
+from degusta_learn.fileio import atomic_write_json, read_json
+from degusta_learn.outdir import OutputKind, write_folder
+from degusta_learn.trainer import BEST
 
 LAST_DIRS = {True: "adapter", False: "model"}
 """Folder of the last weights, by `module.lora`."""
 BEST_DIRS = {True: "best_adapter", False: "best_model"}
 """Folder of the best weights (what `best.ckpt` holds), by `module.lora`."""
+MODEL_FOLDER = OutputKind("model folder", ("*.safetensors", "*.bin", "*.json", "*.txt", "*.jinja", "*.model",
+                                           "*.yaml", "README.md"))
+"""What `save_pretrained` (model, processor, PEFT adapter) and degusta write into a model folder."""
 SELECTION_FILE = "degusta_selection.json"
 """In a best folder: {"monitor", "mode", "score", "step", "epoch", "checkpoint"} of the validation it comes from."""
 
 
-def replace_folder(out: Path, write: Callable[[Path], None]) -> Path:
-    """Run `write(tmp)` on a fresh hidden folder beside `out`, then swap it in for `out`.
-
-    On any error the temp folder is removed and `out` is left as it was.
-    """
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f"{TMP_PREFIX}{out.name}."))
-    old = None
-    try:
-        os.chmod(tmp, 0o777 & ~UMASK)  # mkdtemp makes 0700 folders; outputs get the usual permissions
-        write(tmp)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f"{TMP_PREFIX}{out.name}.old."))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and not out.exists() and (old / out.name).exists():
-            os.replace(old / out.name, out)  # put the previous folder back
-        raise
-    finally:
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    return out
-
-
 def write_weights(module, out: Path, selection: dict | None = None) -> Path:
     """Write `module`'s current weights to `out` as a plain folder (adapter or model + processor), with the
-    fine-tuning metadata and, for a best export, `selection`; all or nothing (`replace_folder`)."""
+    fine-tuning metadata and, for a best export, `selection`; all or nothing (`write_folder`)."""
     from degusta_learn.finetune.lora import save_adapter
     from degusta_learn.finetune.train import write_meta
 
-    def write(tmp: Path) -> None:
+    with write_folder(out, MODEL_FOLDER) as tmp:
         if module.lora:
             save_adapter(module.model, tmp)
         else:
@@ -83,8 +56,7 @@ def write_weights(module, out: Path, selection: dict | None = None) -> Path:
         write_meta(tmp, module.cfg, module.processor)
         if selection is not None:
             atomic_write_json(tmp / SELECTION_FILE, selection)
-
-    return replace_folder(out, write)
+    return Path(out)
 
 
 def save_last(module, run_dir: Path) -> Path:

@@ -6,7 +6,8 @@ generation_config.json) and the processor (tokenizer, image processor, chat temp
 training config (`pretrain_config.yaml`) and `README.md`, the model card. `bench_perception.py`
 adds `perception.json` (its held-out scores) and re-renders the card with `write_card`.
 
-The folder is written beside its destination and moved into place, so a reader never sees half of it.
+The folder is staged beside its destination and swapped in whole (`outdir.write_folder`): a reader never sees
+half of it, and a file of the user's in it is kept.
 
 Example:
     export_base(model, processor, cfg, Path("checkpoints/tiny_vlm_base"), run_dir, history)
@@ -42,48 +43,47 @@ def training_curve(run_dir: Path) -> list[dict]:
     return [rows[s] for s in sorted(rows)]
 
 
-def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None) -> Path:
-    """Save `model` + `processor` to `out` with degusta_base.json, pretrain_config.yaml and README.md."""
+def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None,
+                run_steps: int | None = None) -> Path:
+    """Save `model` + `processor` to `out` with degusta_base.json, pretrain_config.yaml and README.md.
+
+    `steps`: the training step of these weights (the best validation's); `run_steps`: how long the run went."""
     from degusta_learn.config import to_dict
     from degusta_learn.render.grid import Grid
     from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.vlm.record import BaseRecord, write_record
 
+    from degusta_learn.finetune.export import MODEL_FOLDER
+    from degusta_learn.outdir import write_folder
+
     out = Path(out)
-    tmp = out.parent / f".{out.name}.partial"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    model.save_pretrained(str(tmp))
-    processor.save_pretrained(str(tmp))
     curve = training_curve(run_dir)
     arch = cfg.model
     n_params = sum(p.numel() for p in model.parameters())
-    write_record(tmp, BaseRecord(
-        architecture=dataclasses.asdict(arch), parameters=n_params, image_size=arch.image_size,
-        render_size=arch.image_size, tokens_per_image=arch.tokens_per_image,
-        grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
-        # the prompt layout it saw in pretraining (object sheets composed into one image); the hf backend
-        # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
-        prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
-        catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
-        training={"command": COMMAND, "steps": steps, "batch_size": cfg.data.batch_size,
-                  "examples": steps * cfg.data.batch_size if steps else None, "lr": cfg.optim.lr,
-                  "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
-                  "tower_steps": cfg.data.tower_steps, "freeze_tower": cfg.data.freeze_tower},
-        validation_curve=curve))
-    if (run_dir / "config.yaml").is_file():
-        shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
-    else:
-        import yaml
+    with write_folder(out, MODEL_FOLDER) as tmp:  # no perception.json: a benchmark of earlier weights is stale
+        model.save_pretrained(str(tmp))
+        processor.save_pretrained(str(tmp))
+        write_record(tmp, BaseRecord(
+            architecture=dataclasses.asdict(arch), parameters=n_params, image_size=arch.image_size,
+            render_size=arch.image_size, tokens_per_image=arch.tokens_per_image,
+            grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
+            # the prompt layout it saw in pretraining (object sheets composed into one image); the hf backend
+            # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
+            prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
+            catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
+            training={"command": COMMAND, "steps": steps, "run_steps": run_steps if run_steps is not None else steps,
+                      "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
+                      "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
+                      "tower_steps": cfg.data.tower_steps, "freeze_tower": cfg.data.freeze_tower,
+                      "freeze_projector": cfg.data.freeze_projector},
+            validation_curve=curve))
+        if (run_dir / "config.yaml").is_file():
+            shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
+        else:
+            import yaml
 
-        atomic_write_text(tmp / "pretrain_config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
-    write_card(tmp, name=out.name, path=out)  # no perception.json yet: a benchmark of earlier weights does not describe these
-    old = out.parent / f".{out.name}.old"
-    shutil.rmtree(old, ignore_errors=True)
-    if out.exists():
-        out.rename(old)
-    tmp.rename(out)
-    shutil.rmtree(old, ignore_errors=True)
+            atomic_write_text(tmp / "pretrain_config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
+        write_card(tmp, name=out.name, path=out)
     return out
 
 
@@ -95,7 +95,8 @@ def _stages(t: dict) -> str:
     """Which weights trained when (the model card's words for data.tower_steps / data.freeze_tower)."""
     if not t.get("tower_steps"):
         return "all weights trained together"
-    after = ("the tower frozen, the projector and the decoder trained" if t.get("freeze_tower")
+    after = ("the tower and projector frozen, the decoder trained" if t.get("freeze_projector")
+             else "the tower frozen, the projector and the decoder trained" if t.get("freeze_tower")
              else "all weights")
     return (f"first a vision stage of {t['tower_steps']} steps (the vision tower and projector alone, on a dense "
             f"per-token loss: what covers each grid cell, its id and direction), then {after}")
@@ -147,6 +148,8 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         "- render images at the model's image size (no resizing, no crop); loading needs `timm`", "",
         "## How it was trained", "",
         f"`{t['command']}` (the resolved config is `pretrain_config.yaml` in this folder): {t['steps']} steps "
+        + (f"(the best validation of a {t['run_steps']}-step run) " if t.get("run_steps", t["steps"]) != t["steps"]
+           else "") +
         f"of {t['batch_size']} examples ({t['examples']} examples, every one a freshly rendered random scene), "
         f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, {_stages(t)}, on a CPU. "
         f"Catalog and tables: {meta['catalog']}. Task mix: {t['mix']}.", "",

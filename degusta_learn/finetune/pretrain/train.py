@@ -284,11 +284,13 @@ def run(cfg: PretrainConfig) -> Path:
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
         if module.trainer is not None and not module.trainer.is_global_zero:
             return Path(cfg.export)
-        best = run_dir / BEST
+        best, step = run_dir / BEST, module.global_step
         if best.is_file():  # export the best validation, not merely the last weights
-            state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
-            module.load_state_dict(state)
-        return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=module.global_step)
+            state = torch.load(best, map_location="cpu", weights_only=True)
+            module.load_state_dict(state["state_dict"])
+            step = int(state.get("global_step", step))
+        return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=step,
+                           run_steps=module.global_step)
 
 def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     """`degusta train --dry-run` for kind pretrain: sizes, tokens per example against data.max_length, steps
