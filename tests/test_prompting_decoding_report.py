@@ -19,17 +19,18 @@ CONFIGS = Path(__file__).parent.parent / "configs"
 GOOD = "[{'type': 'cup', 'id': 3, 'position': ['A1'], 'cardinal_direction': 'N'}]"
 
 
-def constrained(changed: bool, free_text: str | None = None, forced: bool = False) -> Completion:
+def constrained(changed: bool, free_text: str | None = None, forced: bool = False, repeat: bool = False) -> Completion:
     return Completion(GOOD, 10, 20, {"constrained": True, "forced_close": forced, "grammar_changed": changed,
-                                     "free_text": free_text, "free_cut": False})
+                                     "repeat_stop": repeat, "free_text": free_text, "free_cut": False})
 
 
 def test_decoding_diagnostics_count_closes_and_free_parses():
     cat = dataset().catalog
     samples = [constrained(False), constrained(True, "Sure! " + GOOD), constrained(True, "no list here", True),
-               constrained(True, None), None]
+               constrained(True, None, repeat=True), None]
     d = decoding_diagnostics(samples, "grid", cat, GRID)
     assert d["constrained"] and d["known"] == 4 and d["forced_closes"] == 1 and d["grammar_changed"] == 3
+    assert d["repeat_stops"] == 1
     # unchanged: its own free answer (parses); changed with a free text: parsed; changed without: unknown
     assert (d["free_known"], d["free_parsed"]) == (3, 2)
     assert (d["free_items"], d["free_item_errors"]) == (2, 0)  # one item in each free answer that parses

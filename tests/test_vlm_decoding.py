@@ -117,3 +117,65 @@ def test_token_budget_fits_every_ground_truth_answer(tiny):
     assert free["max_new_tokens"] > max(lengths)  # the longest answer and its end-of-turn token fit
     # constrained: closing mode starts only after the longest answer (it reserves max_chars_to_close)
     assert con["max_new_tokens"] - grammar.max_chars_to_close > max(lengths)
+
+
+def test_the_grammar_knows_when_an_id_names_an_object_again():
+    g = AnswerGrammar("grid", dataset().catalog, GRID)
+    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
+    again = g.feed(g.start(), f"[{item}, {{'type': 'cup', 'id': ")
+    assert g.repeats(again, "16") and g.repeats(again, "16, ") and g.repeats(g.feed(again, "1"), "6")
+    assert not g.repeats(again, "17") and not g.repeats(again, "1")  # "1" may become 17: nothing repeated yet
+    assert not g.repeats(g.feed(g.start(), "[{'type': 'cup', 'id': "), "16")  # nothing placed before
+    assert not g.repeats(g.feed(g.start(), f"[{item}, {{'type': '"), "cup")  # the type slot is not an id
+
+
+@pytest.mark.parametrize("stop", [True, False])
+def test_a_model_that_names_an_object_again_ends_its_answer_there(tiny, stop):
+    """Forced onto the next unused id, a model that has finished its list would go on inventing objects (the
+    shipped base: 16-19 items where its free answer had 5); with stop_on_repeat the answer ends instead."""
+    import torch
+
+    from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
+
+    model, processor, _, grammar = tiny
+    tok = processor.tokenizer
+    stops = [tok.eos_token_id if tok.eos_token_id is not None else 0]
+    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
+    prefix = tok.encode(f"[{item}, {{'type': 'cup', 'id': ", add_special_tokens=False)
+    scores = torch.zeros(1, len(tok))
+    scores[0, tok.encode("16", add_special_tokens=False)[0]] = 10.0  # the model's pick: id 16 again
+    proc = GrammarLogitsProcessor(grammar, tok, 0, stops, max_new_tokens=400)
+    sampler = Sampler(0.0, [0], stops, proc, stop_on_repeat=stop)
+    picked = int(sampler(torch.tensor([prefix]), scores).argmax())
+    assert sampler.grammar_changed == [True] and sampler.repeat_stop == [stop]
+    if stop:
+        assert picked == stops[0] and sampler.done == [True]
+    else:  # the grammar's next-best id: another cup, which the model never meant
+        assert picked not in stops and tok.decode([picked]).isdigit()
+
+
+def test_answers_that_stop_on_a_repeat_keep_the_items_before_it(tiny, one_torch_thread, monkeypatch):
+    """Coupled sampling: the same seeds with and without stop_on_repeat write the same items up to the repeat;
+    a stopped answer parses and is those items, the rest is its continuation. (Random weights almost never
+    pick a used id, so here every refused pick in an id slot after the first item counts as a repeat; what
+    is a repeat is tested above.)"""
+    from degusta_learn.vlm.constrain import Sampler
+
+    def any_refused_id(self, new_ids, token):
+        g = self.grammar
+        st = g.state_of(g.tokenizer.decode(new_ids, skip_special_tokens=False, clean_up_tokenization_spaces=False))
+        return st is not None and st[0] == "item" and g.grammar.parts[st[1]] == ("slot", "id") and len(st[6]) > 0
+
+    monkeypatch.setattr(Sampler, "_repeats", any_refused_id)
+    model, processor, prompt, grammar = tiny
+    catalog = dataset().catalog
+    kw = dict(n=6, temperature=1.0, max_new_tokens=300, constrained=True, grammar=grammar, seed=3)
+    stopped = generate_answers(model, processor, prompt, stop_on_repeat=True, **kw)
+    going = generate_answers(model, processor, prompt, stop_on_repeat=False, **kw)
+    assert any(c.decoding["repeat_stop"] for c in stopped)
+    for s, g in zip(stopped, going):
+        a, b = parse_answer(s.text, "grid", catalog, GRID), parse_answer(g.text, "grid", catalog, GRID)
+        if s.decoding["repeat_stop"]:
+            assert 0 < len(a) < len(b) and a == b[:len(a)] and s.text.endswith("'}]")  # whole items, closed
+        else:
+            assert s.text == g.text

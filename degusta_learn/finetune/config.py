@@ -115,6 +115,9 @@ class EvalConfig:
     """Constrain validation answers to the answer grammar (parse rate 100% by construction)."""
     report_unconstrained: bool = False
     """Also generate unconstrained and log val/parse_rate_unconstrained (twice the validation time)."""
+    stop_on_repeat: bool = True
+    """Constrained: an answer ends where the model names an object it already placed (as the hf backend's
+    `backend.stop_on_repeat`, so validation scores what predict writes)."""
     max_new_tokens: int = bounded(384, 1, 32_768)
     """Most new tokens per generated answer."""
     batch_size: int | None = bounded(None, 1, 4096)

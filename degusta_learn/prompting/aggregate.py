@@ -103,7 +103,7 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
     Keys: `constrained` (decoded inside the answer grammar: a "+ grammar" row), `known` (answers that say),
     `forced_closes` (answers the token budget closed early, constrained; or cut off before their end,
     free), and for constrained answers `grammar_changed` (answers free decoding would have written
-    otherwise), `free_known` / `free_parsed` (answers whose free version is known / parses: what the same
+    otherwise), `repeat_stops` (answers that ended where the model named an object again: `stop_on_repeat`), `free_known` / `free_parsed` (answers whose free version is known / parses: what the same
     model would score without the grammar, comparable with free-text parse rates), `free_items` /
     `free_item_errors` (items read from the free answers that parse / of those dropped by the item policy)
     and `free_responses` (the free answer where the grammar changed it, else null).
@@ -121,6 +121,7 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
         return out
     out["forced_closes"] = sum(bool(d.get("forced_close")) for d in known)
     out["grammar_changed"] = sum(bool(d.get("grammar_changed")) for d in known)
+    out["repeat_stops"] = sum(bool(d.get("repeat_stop")) for d in known)
     free_known = free_parsed = free_items = free_dropped = 0
     for s, d in zip(samples, decs):
         if d is None:

@@ -23,6 +23,13 @@ refused the free pick. So the sampler records, per sequence,
 - `forced_close`: in closing mode, the budget refused the token the grammar alone would have allowed (the
   token budget closed the answer early: fewer cells or objects than the model was writing);
 
+- `repeat_stop` (with `stop_on_repeat`): the free pick named again an object an earlier item had placed
+  (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
+  over; forced onto the next unused id it would go on inventing objects until the token budget runs out
+  (measured: 16-19 items where the free answer had 5, docs/tiny_base.md point 18). So the sequence stops
+  there and `generate` keeps the items before the repeat (`repeat_cut`: the answer ends after the last
+  complete item);
+
 and a free pass with the same seeds (`generate.generate_answers`) gives the exact free answer of every
 sequence the grammar changed. The sampler hands `generate` a one-hot distribution, so `generate` must run
 with do_sample=True, temperature 1, top_k 0, top_p 1 (nothing else reshapes it).
@@ -168,11 +175,13 @@ class Sampler:
     """
 
     def __init__(self, temperature: float, seeds: list[int], stop_ids: list[int],
-                 grammar: GrammarLogitsProcessor | None = None):
+                 grammar: GrammarLogitsProcessor | None = None, stop_on_repeat: bool = False):
         self.temperature, self.seeds, self.stop_ids = float(temperature), list(seeds), set(stop_ids)
-        self.grammar = grammar
+        self.grammar, self.stop_on_repeat = grammar, stop_on_repeat
+        self.first_stop = next(iter(stop_ids), None)
         self.grammar_changed = [False] * len(seeds)
         self.forced_close = [False] * len(seeds)
+        self.repeat_stop = [False] * len(seeds)
         self.done = [False] * len(seeds)
         self._generators: list[torch.Generator] | None = None
 
@@ -202,6 +211,10 @@ class Sampler:
                 chosen = (keys[row] + mask).argmax()
                 if chosen != pick[row]:
                     self.grammar_changed[row] = True
+                    if self.stop_on_repeat and self.first_stop is not None and self._repeats(new[row], int(pick[row])):
+                        self.repeat_stop[row] = True
+                        pick[row] = self.first_stop
+                        continue
                 if closing and not self.forced_close[row]:
                     open_mask = self.grammar.row_mask(new[row], vocab, False).to(keys.device, keys.dtype)
                     self.forced_close[row] = bool((keys[row] + open_mask).argmax() != chosen)
@@ -211,3 +224,10 @@ class Sampler:
         out = torch.full_like(scores, float("-inf"))
         out[torch.arange(scores.shape[0], device=scores.device), pick] = 0
         return out
+
+    def _repeats(self, new_ids, token: int) -> bool:
+        """Whether `token` after the generated ids `new_ids` names an object the answer already placed."""
+        g = self.grammar
+        text = g.tokenizer.decode(new_ids, skip_special_tokens=False, clean_up_tokenization_spaces=False)
+        piece = g.tokenizer.decode([token], skip_special_tokens=False, clean_up_tokenization_spaces=False)
+        return g.grammar.repeats(g.state_of(text), piece)

@@ -17,6 +17,8 @@ What decoding did is recorded in each `Completion.decoding`:
   noise streams, so it is exactly what `constrained=False` with the same seed writes. An answer the
   grammar did not change is its own free answer (`free_text` null), so the free parse rate costs only
   the answers the grammar changed;
+  With `stop_on_repeat` (the default) a constrained answer ends where the model named an object again
+  (`repeat_stop`, see `constrain.Sampler`): it keeps the items before the repeat;
 - free: `constrained: false`, `cut` (the answer ran out of `max_new_tokens` before its end-of-turn).
 
 `answer_token_budget` derives `max_new_tokens` from a dataset's ground-truth answers and the tokenizer
@@ -61,7 +63,7 @@ def _row_seeds(seed: int | None, rows: int) -> list[int]:
 
 def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 0.0, max_new_tokens: int = 256,
                      constrained: bool = False, grammar=None, seed: int | None = None,
-                     free_pass: bool = False) -> list:
+                     free_pass: bool = False, stop_on_repeat: bool = True) -> list:
     """Sample `n` answers to `prompt`.
 
     Args:
@@ -76,12 +78,13 @@ def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 
         seed: seed of the answers' noise streams (reproducible samples; None: from torch's generator).
         free_pass: constrained only: also generate, without the grammar, every answer the grammar changed
             (`decoding.free_text`; see the module docstring).
+        stop_on_repeat: constrained only: end the answer where the model names an object again (module docstring).
 
     Returns:
         n `Completion`s (text without special tokens, prompt and answer token counts, `decoding`).
     """
     return generate_batch(model, processor, [prompt], n, temperature, max_new_tokens, constrained, grammar, [seed],
-                          free_pass)[0]
+                          free_pass, stop_on_repeat)[0]
 
 
 def encode_prompts(processor, fmt: ChatFormat, prompts: list):
@@ -102,7 +105,7 @@ def encode_prompts(processor, fmt: ChatFormat, prompts: list):
 
 def generate_batch(model, processor, prompts: list, n: int = 1, temperature: float = 0.0, max_new_tokens: int = 256,
                    constrained: bool = False, grammar=None, seeds: list[int | None] | None = None,
-                   free_pass: bool = False) -> list[list]:
+                   free_pass: bool = False, stop_on_repeat: bool = True) -> list[list]:
     """`generate_answers` for several prompts in ONE `generate` call (left padding): `n` answers per prompt.
 
     Every answer keeps its own noise stream (`seeds[i]` gives prompt i's answers the streams
@@ -140,7 +143,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
         per_prompt = len(row_seeds) // len(batch)
         proc = (GrammarLogitsProcessor(grammar, tok, prompt_len, fmt.stop_ids, max_new_tokens)
                 if with_grammar else None)
-        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc)
+        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc, stop_on_repeat=stop_on_repeat)
         # The sampler picks each token and hands `generate` a one-hot distribution: nothing may reshape it.
         kwargs = dict(max_new_tokens=max_new_tokens, eos_token_id=fmt.stop_ids, do_sample=True, temperature=1.0,
                       top_k=0, top_p=1.0, use_cache=True, num_return_sequences=per_prompt,
@@ -152,8 +155,10 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
         rows = []
         for r, row in enumerate(out[:, prompt_len:].tolist()):
             end = next((i for i, t in enumerate(row) if t in stops), None)
-            text = tok.decode(row[:end], skip_special_tokens=True, clean_up_tokenization_spaces=False)
-            rows.append((text.strip(), int(lengths[r // per_prompt]), len(row) if end is None else end + 1,
+            text = tok.decode(row[:end], skip_special_tokens=True, clean_up_tokenization_spaces=False).strip()
+            if sampler.repeat_stop[r] and "}" in text:  # the items before the repeat (a valid answer)
+                text = text[:text.rindex("}") + 1] + "]"
+            rows.append((text, int(lengths[r // per_prompt]), len(row) if end is None else end + 1,
                          end is None))
         return rows, sampler
 
@@ -162,7 +167,8 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
     rows, sampler = run(prompts, [s for ps in prompt_seeds for s in ps], constrained)
     if constrained:
         decoding = [{"constrained": True, "forced_close": sampler.forced_close[r],
-                     "grammar_changed": sampler.grammar_changed[r], "free_text": None, "free_cut": False}
+                     "grammar_changed": sampler.grammar_changed[r], "repeat_stop": sampler.repeat_stop[r],
+                     "free_text": None, "free_cut": False}
                     for r in range(len(rows))]
         for i, prompt in enumerate(prompts):
             changed = [j for j in range(k) if decoding[i * k + j]["grammar_changed"]]

@@ -173,6 +173,18 @@ class AnswerGrammar:
             return ("item", part, 3, "", type_, cells, n) if ch == " " else None
         return ("item", part, 0, "", type_, cells, n) if ch == "'" else None
 
+    def repeats(self, state, text: str) -> bool:
+        """Whether `text`, read from `state`, names again an object an earlier item placed: the id slot's number
+        ends (or can only end) on an id already in the answer. The grammar refuses such text; a sampler may
+        take it as the model's sign that the list is over (`constrain.Sampler`, `stop_on_repeat`)."""
+        if state is None or state[0] != "item" or self.parts[state[1]] != ("slot", "id"):
+            return False
+        digits = re.match(r"\d*", text).group()
+        number, used = state[3] + digits, state[6]
+        if not number or number not in used:
+            return False
+        return len(digits) < len(text) or not self._prefix_ok("id", number, state[4], used)
+
     def _cells_after(self, last: int) -> set[str]:
         """Every non-empty prefix of a cell id that comes after cell number `last` (row-major), cached."""
         if last not in self._cell_prefixes:

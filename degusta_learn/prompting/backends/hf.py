@@ -32,9 +32,10 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import Backend, BackendConfig
 
 
-DECODING_VERSION = 2
+DECODING_VERSION = 3
 """Bump when `vlm.generate`'s sampling or `vlm.grammar` changes what a seeded answer is (2: per-answer noise
-streams, sorted cells and per-type cell limits in the grammar)."""
+streams, sorted cells and per-type cell limits in the grammar; 3: a constrained answer ends where the model
+names an object again, `stop_on_repeat`)."""
 
 
 @dataclass
@@ -49,6 +50,9 @@ class HFConfig(BackendConfig):
     """A peft LoRA adapter folder (from `degusta train`)."""
     constrained: bool = False
     """Constrain decoding to the answer grammar."""
+    stop_on_repeat: bool = True
+    """Constrained: end an answer where the model names an object it already placed (forced onto another id, a
+    small model goes on inventing objects; `vlm.constrain.Sampler`); false: the grammar's next-best id instead."""
     device: str = "auto"
     """cpu, cuda, auto."""
     dtype: Literal["auto", "float32", "bfloat16", "float16"] = "auto"
@@ -56,7 +60,7 @@ class HFConfig(BackendConfig):
     image_size: int | None = None
     """The processor's image size budget (unset: the model's default)."""
 
-    answer_keys = ("adapter", "constrained", "dtype", "image_size")
+    answer_keys = ("adapter", "constrained", "stop_on_repeat", "dtype", "image_size")
 
     def answer_fields(self) -> dict:
         """The base keys plus the decoding version: answers cached before a change of the sampler or the
@@ -87,7 +91,8 @@ class HFBackend(Backend):
         return side * side if side else super().image_tokens(width, height, cfg)
 
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
-                 dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None):
+                 dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None,
+                 stop_on_repeat: bool = True):
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
         from degusta_learn.vlm.load import load_vlm
         from degusta_learn.vlm.record import FinetuneRecord, locate_record, read_record
@@ -108,6 +113,7 @@ class HFBackend(Backend):
         self.options = self.record.prompt if self.record else None
         self.trained_method = self.record.method if isinstance(self.record, FinetuneRecord) else None
         self.constrained, self.grid, self.catalog = constrained, grid, catalog
+        self.stop_on_repeat = stop_on_repeat
         if constrained and catalog is None:
             raise DegustaError("backend.constrained: constrained decoding needs the dataset catalog")
         self._grammars: dict = {}
@@ -116,7 +122,8 @@ class HFBackend(Backend):
     @classmethod
     def from_config(cls, cfg, grid=None, catalog=None) -> HFBackend:
         return cls(cfg.model, adapter=cfg.adapter, constrained=cfg.constrained, device=cfg.device,
-                   dtype=cfg.dtype, image_size=cfg.image_size, grid=grid, catalog=catalog)
+                   dtype=cfg.dtype, image_size=cfg.image_size, grid=grid, catalog=catalog,
+                   stop_on_repeat=cfg.stop_on_repeat)
 
     def grammar(self, method: str):
         from degusta_learn.vlm.grammar import AnswerGrammar
@@ -160,7 +167,8 @@ class HFBackend(Backend):
         with self._lock:
             return generate_answers(self.vlm, self.processor, prompt, n=n, temperature=temperature,
                                     max_new_tokens=max_tokens, constrained=self.constrained, grammar=grammar,
-                                    seed=seed, free_pass=True)  # the free answer wherever the grammar changed one
+                                    seed=seed, free_pass=True,  # the free answer wherever the grammar changed one
+                                    stop_on_repeat=self.stop_on_repeat)
 
 
 @functools.lru_cache(maxsize=16)
