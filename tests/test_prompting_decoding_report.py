@@ -54,7 +54,9 @@ def test_summary_line_labels_and_answer_table():
            "free_items": 5, "free_item_errors": 1}
     preds = [_prediction(ep, dec) for ep in eps]
     line = failure_summary(preds)
-    assert "3 of 12 answers closed early by the token budget (25.0%)" in line
+    assert "3 of 12 answers closed early by the token budget (25.0%);" in line and "named an object again" not in line
+    line = failure_summary([_prediction(ep, {**dec, "repeat_stops": 2}) for ep in eps])
+    assert "(25.0%), 6 ended where the model named an object again;" in line
     assert "without the grammar 3 of 12 would parse (25.0%; the grammar changed 9; 3 of their 15 items dropped" in line
     free = [_prediction(ep, {"constrained": False, "known": 4, "forced_closes": 2}, parsed=3) for ep in eps]
     assert "6 of 12 answers cut off by the token budget (50.0%)" in failure_summary(free)

@@ -176,8 +176,11 @@ def failure_summary(predictions) -> str:
             items = sum(_count(d.get("free_items")) for d in decs)
             dropped = sum(_count(d.get("free_item_errors")) for d in decs)
             items_note = f"; {dropped} of their {items} items dropped, {_pct(dropped, items)}" if free else ""
+            repeats = sum(_count(d.get("repeat_stops")) for d in decs)
             line += (f"; decoded inside the answer grammar: {closed} of {known} answers closed early by the token "
-                     f"budget ({_pct(closed, known)}); without the grammar {free} of {free_known} would parse "
+                     f"budget ({_pct(closed, known)})"
+                     + (f", {repeats} ended where the model named an object again" if repeats else "")
+                     + f"; without the grammar {free} of {free_known} would parse "
                      f"({_pct(free, free_known)}; the grammar changed {changed}{items_note})")
         else:
             line += f"; {closed} of {known} answers cut off by the token budget ({_pct(closed, known)})"
