@@ -27,8 +27,7 @@ refused the free pick. So the sampler records, per sequence,
   (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
   over; forced onto the next unused id it would go on inventing objects until the token budget runs out
   (measured: 16-19 items where the free answer had 5, docs/tiny_base.md point 18). So the sequence stops
-  there and `generate` keeps the items before the repeat (`repeat_cut`: the answer ends after the last
-  complete item);
+  there and `generate` keeps the items before the repeat (the answer ends after its last complete item);
 
 and a free pass with the same seeds (`generate.generate_answers`) gives the exact free answer of every
 sequence the grammar changed. The sampler hands `generate` a one-hot distribution, so `generate` must run
