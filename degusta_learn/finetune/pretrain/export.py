@@ -157,7 +157,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
     ]
     if bench:
         lines += [f"On {bench['n_images']} freshly rendered held-out scenes and sheets "
-                  f"(`python benchmarks/bench_perception.py`, constrained decoding):", "",
+                  f"(`python benchmarks/bench_perception.py`, constrained decoding; a list ends where the model names an object again):", "",
                   "| object-set F1 (type, id) | exact cell set | direction (no plates) | GoMO mark id | cell IoU | parse rate |",
                   "|---:|---:|---:|---:|---:|---:|",
                   "| " + " | ".join(_fmt(bench["scores"].get(k)) for k in
