@@ -86,7 +86,7 @@ def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], 
     A method in `degenerate` is drawn dotted and labelled with DEGENERATE_MARK: its Kabsch
     RMSD is ~0 by construction, so its curve says nothing about quality.
     """
-    fig, ax = plt.subplots(figsize=(6.2, 3.8))
+    fig, ax = plt.subplots(figsize=(9.4, 3.8))
     ts = sorted(curve)
     ax.plot(ts, [curve[t] for t in ts], "k-o", lw=2, label="people: rating drop < 0.2")
     grid = np.linspace(0, 0.3, 121)
@@ -101,7 +101,7 @@ def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], 
     ax.set_ylim(0, 1.02)
     ax.set_title("Acceptability (paper): people's tolerance vs each method's Kabsch RMSD\n"
                  "legend: methods ranked by set RMSD, best first", fontsize=9)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the axes: hides no curve
     fig.tight_layout()
     return _save(fig, path)
 

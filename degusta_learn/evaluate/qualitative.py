@@ -28,7 +28,10 @@ def _panel(renderer: Renderer, table_id: int, placements: list[Placement], title
     canvas = Image.new("RGB", (img.width, img.height + _TITLE_H), "white")
     canvas.paste(img, (0, _TITLE_H))
     draw = ImageDraw.Draw(canvas)
-    draw.text((6, 2), title, fill="black", font=font(15))
+    size = 15  # a long method name ("tiny_base_finetuned + grammar") shrinks to fit instead of being cut off
+    while size > 9 and draw.textlength(title, font=font(size)) > canvas.width - 12:
+        size -= 1
+    draw.text((6, 2), title, fill="black", font=font(size))
     draw.text((6, 21), subtitle, fill=(80, 80, 80), font=font(12))
     if off:  # its own line: appended to the score it ran past the panel's edge
         draw.text((6, 37), f"{off} object{'s' if off > 1 else ''} off the table", fill=(170, 60, 40), font=font(12))
