@@ -49,12 +49,11 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
 
     `steps`: the training step of these weights (the best validation's); `run_steps`: how long the run went."""
     from degusta_learn.config import to_dict
+    from degusta_learn.finetune.export import MODEL_FOLDER
+    from degusta_learn.outdir import write_folder
     from degusta_learn.render.grid import Grid
     from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.vlm.record import BaseRecord, write_record
-
-    from degusta_learn.finetune.export import MODEL_FOLDER
-    from degusta_learn.outdir import write_folder
 
     out = Path(out)
     curve = training_curve(run_dir)
