@@ -524,7 +524,11 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
             raise DegustaError(f"{run}: holds {LAST} from an earlier run; set trainer.resume=true to continue "
                                f"it or choose another trainer.run_name")
         if (run / "config.yaml").exists():
-            _check_same(read_yaml(run / "config.yaml"), resolved, run / "config.yaml")
+            added = _check_same(read_yaml(run / "config.yaml"), resolved, run / "config.yaml")
+            if added:  # keys a newer degusta_learn introduced: the old run had no say in them
+                print(f"degusta: note: {run / 'config.yaml'} predates {', '.join(added)}; resuming with "
+                      f"{', '.join(repr(v) for v in added.values())} (the run's config.yaml now records them)",
+                      file=sys.stderr)
         ckpt = _pick_resume(run)
     if not write:
         return run, ckpt
@@ -542,17 +546,23 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
     return run, ckpt
 
 
-def _check_same(old: dict, new: dict, where: Path, prefix: str = "") -> None:
+def _check_same(old: dict, new: dict, where: Path, prefix: str = "") -> dict[str, Any]:
+    """Refuse a resume whose config differs outside `trainer`; returns the keys `old` lacks ({dotted key: new
+    value}): a config written before a newer version of the toolkit added them, not a change of the run."""
+    added: dict[str, Any] = {}
     for key in sorted(set(old) | set(new)):
         if not prefix and key == "trainer":
             continue  # epochs, devices etc. may change between an interrupted run and its resume
         a, b = old.get(key), new.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            _check_same(a, b, where, prefix + key + ".")
+        if key not in old:
+            added[prefix + key] = b
+        elif isinstance(a, dict) and isinstance(b, dict):
+            added |= _check_same(a, b, where, prefix + key + ".")
         elif a != b and not (isinstance(a, list) and isinstance(b, tuple) and list(b) == a) \
                 and not _same_path(a, b):
             raise DegustaError(f"{where}: cannot resume, '{prefix}{key}' was {a!r} and is now {b!r} "
                                f"(use another trainer.run_name, or trainer.resume=false in a new folder)")
+    return added
 
 
 def _same_path(a: Any, b: Any) -> bool:

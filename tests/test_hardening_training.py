@@ -303,3 +303,21 @@ def test_same_dataset_by_relative_and_absolute_path_resumes(tmp_path, data_root,
         from degusta_learn.methods import run_train
 
         run_train(cfg, [f"dataset={other}", "trainer.max_steps=3"])
+
+
+def test_a_run_from_before_a_new_config_key_resumes_and_says_so(tmp_path, data_root, capsys):
+    """A config key that a newer degusta_learn added (absent from the run's config.yaml) is not a change of the
+    run: the resume goes on, names the key and the value it now runs with, and records it; a changed key refuses."""
+    cfg = learned_yaml(tmp_path, data_root, monitor=None)
+    assert train(cfg) == 0
+    saved = tmp_path / "runs" / "tiny" / "config.yaml"
+    old = yaml.safe_load(saved.read_text())
+    del old["model"]["d_ff"]  # as an older version would have written it
+    saved.write_text(yaml.safe_dump(old))
+    capsys.readouterr()
+    assert train(cfg, "trainer.max_steps=2") == 0
+    err = capsys.readouterr().err
+    assert "predates model.d_ff; resuming with 32" in err, err
+    assert yaml.safe_load(saved.read_text())["model"]["d_ff"] == 32
+    assert train(cfg, "trainer.max_steps=3", "model.d_ff=64") == 2
+    assert "cannot resume, 'model.d_ff' was 32 and is now 64" in one_error_line(capsys)
