@@ -144,10 +144,14 @@ class GrammarLogitsProcessor:
         """Whether `n_new` generated tokens leave only the budget that closing the answer needs."""
         return self.max_new_tokens - n_new <= self.grammar.max_chars_to_close
 
+    def state_after(self, new_ids):
+        """Grammar state after the generated ids `new_ids` of one row (their decoded text, see `state_of`)."""
+        return self.state_of(self.tokenizer.decode(new_ids, skip_special_tokens=False,
+                                                   clean_up_tokenization_spaces=False))
+
     def row_mask(self, new_ids, vocab: int, closing: bool) -> torch.Tensor:
         """(vocab,) additive mask (0 allowed, -inf refused) after the generated ids `new_ids` of one row."""
-        text = self.tokenizer.decode(new_ids, skip_special_tokens=False, clean_up_tokenization_spaces=False)
-        state = self.state_of(text)
+        state = self.state_after(new_ids)
         key = (state, closing, vocab)
         if key not in self._masks:
             # state None cannot happen under this processor; finish the sequence instead
@@ -227,6 +231,5 @@ class Sampler:
     def _repeats(self, new_ids, token: int) -> bool:
         """Whether `token` after the generated ids `new_ids` names an object the answer already placed."""
         g = self.grammar
-        text = g.tokenizer.decode(new_ids, skip_special_tokens=False, clean_up_tokenization_spaces=False)
         piece = g.tokenizer.decode([token], skip_special_tokens=False, clean_up_tokenization_spaces=False)
-        return g.grammar.repeats(g.state_of(text), piece)
+        return g.grammar.repeats(g.state_after(new_ids), piece)

@@ -47,7 +47,7 @@ def monitor_keys(cfg) -> set[str]:
 
 def _projector_frozen(cfg) -> bool:
     """True when the projector stops training after a vision stage (`data.freeze_projector`)."""
-    return cfg.data.freeze_projector and cfg.data.freeze_tower and cfg.data.tower_steps > 0
+    return cfg.data.freeze_projector and cfg.data.tower_steps > 0  # PretrainData refuses it without freeze_tower
 
 
 class PerceptionModule(FinetuneModule):
@@ -121,7 +121,8 @@ class PerceptionModule(FinetuneModule):
         from degusta_learn.finetune.pretrain.dense import projector_of
 
         hf = unwrap(self.model)
-        for part in (hf.model.vision_tower, projector_of(hf)) if _projector_frozen(self.cfg) else (hf.model.vision_tower,):
+        parts = [hf.model.vision_tower] + ([projector_of(hf)] if _projector_frozen(self.cfg) else [])
+        for part in parts:
             if any(p.requires_grad for p in part.parameters()):
                 part.requires_grad_(False)
             freeze_batch_norms(part)  # BatchNorms keep the stage's statistics (Lightning re-enters train mode)
