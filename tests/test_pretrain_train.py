@@ -100,6 +100,34 @@ def test_oracle_teacher_feeds_the_decoder_perfect_image_tokens_then_lets_go():
     assert teacher.pull(swapped.detach()) < 1e-9  # tokens equal to their oracle sums: nothing to pull
 
 
+def test_tied_readout_names_a_cells_content_through_the_decoders_output_layer():
+    from degusta_learn.finetune.pretrain.dense import TiedReadout
+
+    model, processor = build_base(BaseArchitecture(  # independent random embeddings: sums of four in 32 dimensions
+        vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=1, text_heads=2, text_kv_heads=1,
+        text_intermediate=64, vocab_size=2048, class_init=0.0))
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    ds = PerceptionExamples(catalog, tables, Grid(8, 8), 256, 0, 8, TaskMix(objects_sheet=1.0), block=1)
+    exs = [ds[i] for i in range(6)]
+    ids = OracleTokens(catalog, processor.tokenizer, Grid(8, 8), "readout_weight")(exs)
+    _, keep = DenseLabels(catalog, 8)(exs)
+    readout = TiedReadout(model.get_output_embeddings(), OracleTokens(catalog, processor.tokenizer, Grid(8, 8)), catalog)
+    teacher = OracleTeacher(model.get_input_embeddings(), steps=1)
+    teacher.ids, teacher.keep = ids, keep
+    perfect = torch.zeros(keep.numel(), 64, 32)
+    perfect[keep] = teacher.oracle().detach()  # the oracle sums: what the decoder learned to copy
+    tokens = torch.randn(keep.numel(), 64, 32, requires_grad=True)
+    read, chance = readout.readouts(perfect, exs, catalog), readout.readouts(tokens.detach(), exs, catalog)
+    assert read["cells"] == chance["cells"] > 20
+    assert read["id"] > 0.7 and read["type"] > 0.9 and chance["id"] < 0.2 and chance["type"] < 0.4  # ~25 ids a type
+    loss = readout.loss(tokens, ids, keep)
+    loss.backward()
+    assert tokens.grad[keep].abs().sum() > 0 and tokens.grad[~keep].abs().sum() == 0  # object sheets: no target
+    assert model.get_output_embeddings().weight.grad is None  # the decoder owns its output layer
+    assert readout.loss(10 * perfect, ids, keep) < loss.item()
+    assert readout.loss(None, ids, keep) is None and readout.loss(tokens, None, keep) is None
+
+
 def test_class_init_gives_rare_answer_tokens_a_shared_direction():
     from degusta_learn.finetune.pretrain.base import init_token_classes, token_classes
 
@@ -225,7 +253,7 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     from safetensors.torch import load_file
 
     steps = ["data.tower_steps=2", "data.teacher_hold=1", "data.teacher_steps=2", "data.curriculum_steps=2",
-             "data.steps_per_epoch=1"]  # validations at steps 1 (in the vision stage), 2, ...
+             "data.steps_per_epoch=1", "data.readout_weight=1"]  # validations at steps 1 (in the vision stage), 2, ...
     run_train(CONFIG, _overrides(tmp_path, 2) + steps)
     run = tmp_path / "runs" / "p"
     init = load_file(run / "init" / "model.safetensors")
@@ -242,7 +270,8 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     table = list(csv.DictReader(next(rows).open()))
     val = [r for r in table if r.get("val/tower_type")]
     assert val and val[0]["val/perception"] == "nan" and float(val[0]["val/tower_id"]) >= 0  # read, not answered
-    assert not any(r.get("train/loss") for r in table)  # the decoder never ran
+    assert not any(r.get("train/loss") or r.get("train/readout") for r in table)  # the decoder never ran
+    assert float(val[0]["val/token_id"]) >= 0  # what the decoder's output layer reads from the tokens
     # the same command with more steps resumes into the decoder stage: every part trains, answers are scored
     run_train(CONFIG, _overrides(tmp_path, 4) + steps)
     state = torch.load(run / "last.ckpt", weights_only=True, map_location="cpu")
@@ -251,6 +280,7 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
                            after["model.language_model.layers.0.mlp.up_proj.weight"])
     table = [r for path in (run / "csv").rglob("metrics.csv") for r in csv.DictReader(path.open())]
     assert any(r.get("train/loss") for r in table) and any(r.get("train/teacher_p") == "1.0" for r in table)
+    assert any(r.get("train/readout") for r in table)  # the tied readout trains the projector after the stage
     assert any(r.get("val/perception") not in (None, "", "nan") for r in table)
     # and without a resume between them: the stages meet inside one epoch of one process
     run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1", "trainer.run_name=q"])
@@ -284,9 +314,13 @@ def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path, projecto
     assert any(r.get("train/pull") for r in table) != projector  # ... but pulls no frozen projector
 
 
-def test_a_frozen_projector_needs_a_frozen_tower(tmp_path):
-    with pytest.raises(DegustaError, match="data.freeze_projector"):
-        run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1", "data.freeze_tower=false", "data.freeze_projector=true"])
+@pytest.mark.parametrize("extra, key", [(["data.freeze_tower=false", "data.freeze_projector=true"], "data.freeze_projector"),
+                                        (["data.freeze_tower=true", "data.freeze_projector=true", "data.readout_weight=1"],
+                                         "data.readout_weight: the tied readout trains the projector"),
+                                        (["data.readout_weight=-1"], "data.readout_weight: expected >= 0")])
+def test_frozen_parts_that_cannot_work_are_refused(tmp_path, extra, key):
+    with pytest.raises(DegustaError, match=key):
+        run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1"] + extra)
     assert not (tmp_path / "runs").exists()
 
 

@@ -79,29 +79,35 @@ class DenseHead(nn.Module):
 
     @torch.no_grad()
     def readouts(self, tokens: torch.Tensor, examples, catalog) -> dict[str, float]:
-        """Top-1 accuracies of the head on every labelled grid cell covered by exactly one object: its type, its
-        id among the objects of that type ("id", chance 1/25 in the default catalog) and its direction.
-        `tokens` (n_images, side^2, hidden) are the image tokens of `examples`' images in order (unlabelled
-        images, e.g. object sheets, are skipped). "cells" is how many cells were read."""
-        types, ids = list(catalog.types), sorted(catalog.ids)
-        nt, ni = len(types), len(ids)
-        same = {t: [j for j, x in enumerate(ids) if catalog[x].type == t] for t in types}
-        labels = [cells for ex in examples for cells in ex.meta.get("cell_labels", [])]
-        right, n = {"type": 0, "id": 0, "direction": 0}, 0
-        if len(labels) != tokens.shape[0]:
-            return {k: float("nan") for k in right} | {"cells": 0}
-        out = self.proj(tokens).float()
-        for cells, logits in zip(labels, out):
-            for k, objects in enumerate(cells or []):
-                if len(objects) != 1:
-                    continue
-                oid, direction = objects[0]
-                kind, n = catalog[oid].type, n + 1
-                right["type"] += int(logits[k, :nt].argmax()) == types.index(kind)
-                of_type = same[kind]
-                right["id"] += ids[of_type[int(logits[k, nt:nt + ni][of_type].argmax())]] == oid
-                right["direction"] += int(logits[k, nt + ni:self.n_labels].argmax()) == DIRECTIONS.index(direction)
-        return {k: (v / n if n else float("nan")) for k, v in right.items()} | {"cells": n}
+        """`label_readouts` of this head's logits."""
+        return label_readouts(self.proj(tokens).float(), examples, catalog)
+
+
+@torch.no_grad()
+def label_readouts(out: torch.Tensor, examples, catalog) -> dict[str, float]:
+    """Top-1 accuracies of per-token label logits `out` (n_images, side^2, >= n_labels, in `DenseLabels`' order)
+    on every labelled grid cell covered by exactly one object: its type, its id among the objects of that type
+    ("id", chance 1/25 in the default catalog) and its direction. The rows of `out` are `examples`' images in
+    order (unlabelled images, e.g. object sheets, are skipped). "cells" is how many cells were read."""
+    types, ids = list(catalog.types), sorted(catalog.ids)
+    nt, ni = len(types), len(ids)
+    n_labels = nt + ni + len(DIRECTIONS)
+    same = {t: [j for j, x in enumerate(ids) if catalog[x].type == t] for t in types}
+    labels = [cells for ex in examples for cells in ex.meta.get("cell_labels", [])]
+    right, n = {"type": 0, "id": 0, "direction": 0}, 0
+    if len(labels) != out.shape[0]:
+        return {k: float("nan") for k in right} | {"cells": 0}
+    for cells, logits in zip(labels, out):
+        for k, objects in enumerate(cells or []):
+            if len(objects) != 1:
+                continue
+            oid, direction = objects[0]
+            kind, n = catalog[oid].type, n + 1
+            right["type"] += int(logits[k, :nt].argmax()) == types.index(kind)
+            of_type = same[kind]
+            right["id"] += ids[of_type[int(logits[k, nt:nt + ni][of_type].argmax())]] == oid
+            right["direction"] += int(logits[k, nt + ni:n_labels].argmax()) == DIRECTIONS.index(direction)
+    return {k: (v / n if n else float("nan")) for k, v in right.items()} | {"cells": n}
 
 
 def projector_of(model):
@@ -133,11 +139,9 @@ class OracleTokens:
     retrieve and copy while the tower learns to produce them. Runs in DataLoader workers.
     """
 
-    def __init__(self, catalog, tokenizer, grid):
-        from degusta_learn.render.grid import DIRECTIONS
-
+    def __init__(self, catalog, tokenizer, grid, key: str = "teacher_steps"):
         def one(text: str) -> int:
-            return single_token(tokenizer, text, "teacher_steps", "the oracle teacher")
+            return single_token(tokenizer, text, key, "the oracle teacher (and the tied readout)")
 
         self.cell = [one(c) for c in grid.cells]
         self.type = {o.id: one(o.type) for o in catalog}
@@ -204,3 +208,40 @@ class OracleTeacher:
         target = self.oracle().detach().float()
         got = tokens[self.keep.to(tokens.device)].float()
         return F.mse_loss(got, target) / target.pow(2).mean().clamp(min=1e-12)
+
+
+class TiedReadout:
+    """The image tokens read through the decoder's own output layer (tied to its input embeddings).
+
+    The decoder names an object by copying an image token into its answer, whose logits are the output layer's
+    dot products with it. Under the oracle teacher it learned to copy sums of embeddings (E["D5"] + E["fork"] +
+    E["48"] + E["S"]); tokens that merely let a separate head tell ids apart were not read (docs/tiny_base.md,
+    point 18). `loss` is the cross-entropy of each labelled token's output-layer logits towards every token of
+    its cell's oracle sum (`OracleTokens`), so the projector writes what the decoder's copy can name; the output
+    layer is detached (the decoder owns it). `readouts` scores the same logits as `DenseHead.readouts` does its
+    own (type, id within type, direction of single-object cells): what a perfect copy of the token would name.
+    """
+
+    def __init__(self, output: nn.Module, oracle: OracleTokens, catalog):
+        self.output = output  # the model's output embeddings (a Linear whose weight is the input embeddings)
+        by_type = {o.type: oracle.type[o.id] for o in catalog}
+        self.label_tokens = torch.tensor([by_type[t] for t in catalog.types] + [oracle.id[i] for i in sorted(catalog.ids)]
+                                         + [oracle.dir[d] for d in DIRECTIONS])
+
+    def _logits(self, tokens: torch.Tensor) -> torch.Tensor:
+        return tokens.float() @ self.output.weight.detach().float().T
+
+    def loss(self, tokens: torch.Tensor | None, ids: torch.Tensor | None, keep: torch.Tensor | None) -> torch.Tensor | None:
+        """Mean negative log-probability of the oracle tokens `ids` (n_labelled, cells, width; -1 padding) under
+        the labelled images' `tokens` (n_images, cells, hidden) read through the output layer; None without labels."""
+        if tokens is None or ids is None or keep is None or tokens.shape[0] != keep.numel() \
+                or tokens.shape[1] != ids.shape[1]:
+            return None
+        logp = F.log_softmax(self._logits(tokens[keep.to(tokens.device)]), dim=-1)
+        ids = ids.to(logp.device)
+        mask = ids >= 0
+        return -(logp.gather(-1, ids.clamp(min=0)) * mask).sum() / mask.sum().clamp(min=1)
+
+    @torch.no_grad()
+    def readouts(self, tokens: torch.Tensor, examples, catalog) -> dict[str, float]:
+        return label_readouts(self._logits(tokens)[..., self.label_tokens.to(tokens.device)], examples, catalog)

@@ -6,7 +6,9 @@ head is trained with the model and left out of the export, and, with `data.teach
 oracle teacher (`dense.OracleTeacher`): for the first steps the decoder mostly sees perfect image tokens
 (sums of the embeddings of what covers each cell) instead of the vision tower's, with a probability
 falling from 1 to 0 over `teacher_steps`, while `data.teacher_weight` pulls the tower's tokens towards
-those sums, and, with `data.retrieval_weight > 0`, the attention supervision (`retrieval.py`): one decoder
+those sums, with `data.readout_weight > 0` the tied readout (`dense.TiedReadout`: the image tokens read
+through the decoder's output layer should name their cell's content; logged as train/readout and, at validation,
+val/token_type / val/token_id / val/token_direction), and, with `data.retrieval_weight > 0`, the attention supervision (`retrieval.py`): one decoder
 head is told where the object an answer names is among the image tokens. With `data.tower_steps > 0` a
 vision stage comes first: only the tower, its projector and the dense head train, on the dense loss alone,
 and the decoder's warmup and cosine schedule (and the teacher's hold) start after it; with `data.freeze_tower`
@@ -37,8 +39,11 @@ def monitor_keys(cfg) -> set[str]:
     keys |= {"train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
     keys |= {"train/pull"} if cfg.data.teacher_steps > 0 and not _projector_frozen(cfg) else set()
     keys |= {"train/retrieval"} if cfg.data.retrieval_weight > 0 else set()
+    keys |= {"train/readout"} if cfg.data.readout_weight > 0 else set()
     if cfg.data.val_examples > 0 and cfg.data.dense_weight > 0:
         keys |= {"val/tower_type", "val/tower_id", "val/tower_direction"}
+    if cfg.data.val_examples > 0 and cfg.data.readout_weight > 0:
+        keys |= {"val/token_type", "val/token_id", "val/token_direction"}
     if cfg.data.val_examples > 0:
         keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
                                       "mark_id", "parse_rate", "perception")}
@@ -70,7 +75,13 @@ class PerceptionModule(FinetuneModule):
         if cfg.data.teacher_steps > 0:
             self.teacher = OracleTeacher(model.get_input_embeddings(), cfg.data.teacher_steps,
                                          cfg.data.teacher_hold + self.tower_steps)
-        if self.dense is not None or self.teacher is not None:
+        self.readout = None
+        if cfg.data.readout_weight > 0:
+            from degusta_learn.finetune.pretrain.dense import OracleTokens, TiedReadout
+
+            oracle = OracleTokens(catalog, processor.tokenizer, grid, "readout_weight")
+            self.readout = TiedReadout(model.get_output_embeddings(), oracle, catalog)
+        if self.dense is not None or self.teacher is not None or self.readout is not None:
             projector_of(model).register_forward_hook(self._capture)
         self.retrieval = None
         if cfg.data.retrieval_weight > 0:
@@ -128,7 +139,7 @@ class PerceptionModule(FinetuneModule):
             freeze_batch_norms(part)  # BatchNorms keep the stage's statistics (Lightning re-enters train mode)
 
     def _pulled(self):
-        """The image tokens the teacher's pull acts on. After a vision stage the pull trains the projector only, on
+        """The image tokens the teacher's pull and the tied readout act on. After a vision stage the pull trains the projector only, on
         the tower's detached output: the tower has learned to see, and the pull (whose targets, the decoder's
         embedding sums, have another scale) would otherwise write over it (measured: the tower's id readout fell
         from 0.57 to 0.06 within 50 steps, docs/tiny_base.md point 16)."""
@@ -162,11 +173,18 @@ class PerceptionModule(FinetuneModule):
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         if self.teacher is not None:
             self.log("train/teacher_p", self.teacher.probability(self.global_step), batch_size=bs)
-        if self.teacher is not None and not _projector_frozen(self.cfg):
-            pull = self.teacher.pull(self._pulled())
+        wanted = (self.teacher is not None or self.readout is not None) and not _projector_frozen(self.cfg)
+        pulled = self._pulled() if wanted else None  # the projector's tokens the pull and the readout train
+        if self.teacher is not None and pulled is not None:
+            pull = self.teacher.pull(pulled)
             if pull is not None:
                 self.log("train/pull", pull, batch_size=bs)
                 loss = loss + self.cfg.data.teacher_weight * pull
+        if self.readout is not None and pulled is not None:
+            read = self.readout.loss(pulled, oracle_ids, keep)
+            if read is not None:
+                self.log("train/readout", read, batch_size=bs)
+                loss = loss + self.cfg.data.readout_weight * read
         if self.retrieval is not None and retrieval[0] is not None:
             sup = self.retrieval.loss(*retrieval)
             if sup is not None:
@@ -208,6 +226,11 @@ class PerceptionModule(FinetuneModule):
             for key in ("type", "id", "direction"):
                 if read["cells"]:
                     self.log(f"val/tower_{key}", read[key], batch_size=read["cells"], sync_dist=True)
+        if self.readout is not None and self._tokens is not None:
+            read = self.readout.readouts(self._tokens, examples, self.catalog)
+            for key in ("type", "id", "direction"):
+                if read["cells"]:
+                    self.log(f"val/token_{key}", read[key], batch_size=read["cells"], sync_dist=True)
         if self.vision_stage:  # the decoder has not trained: no answers to score
             self.log("val/perception", float("nan"), batch_size=len(examples), sync_dist=True)
             return

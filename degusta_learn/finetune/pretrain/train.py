@@ -74,6 +74,10 @@ class PretrainData:
     """Steps at teacher probability 1 before it starts to fall over `teacher_steps` (e.g. a curriculum's)."""
     teacher_weight: float = 1.0
     """Weight of the pull of the tower's image tokens towards those oracle sums (while teacher_steps > 0)."""
+    readout_weight: float = 0.0
+    """Weight of the tied readout (`dense.TiedReadout`), after any vision stage: each labelled image token, read
+    through the decoder's own output layer, should name its cell's content (cell, types, ids, directions), so the
+    projector writes ids where the decoder's copy can name them; 0: off. Needs a trainable projector."""
     retrieval_weight: float = 1.0
     """Weight of the attention supervision (`retrieval.py`): one decoder head is told to look, at every answer
     cell and direction, at the image tokens of the object the answer names; 0: off."""
@@ -102,6 +106,11 @@ class PretrainData:
                                "expected >= 0")
         if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
             raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
+        if self.readout_weight < 0:
+            raise DegustaError(f"data.readout_weight: expected >= 0, got {self.readout_weight}")
+        if self.readout_weight > 0 and self.freeze_projector:
+            raise DegustaError("data.readout_weight: the tied readout trains the projector, which "
+                               "data.freeze_projector: true keeps fixed; set one of them off")
         if self.freeze_projector and not self.freeze_tower:
             raise DegustaError("data.freeze_projector: a frozen projector over a tower that goes on training would read "
                                "tokens the stage never made; set data.freeze_tower: true as well")
@@ -153,7 +162,7 @@ class PretrainConfig:
                                f"(model.text_layers {self.model.text_layers}, model.text_heads "
                                f"{self.model.text_heads}); pick one inside it or set data.retrieval_weight: 0")
         square = self.data.grid.rows == self.data.grid.cols == self.model.tokens_per_side
-        for key in ("dense_weight", "teacher_steps", "retrieval_weight"):  # per grid cell, one per image token
+        for key in ("dense_weight", "teacher_steps", "readout_weight", "retrieval_weight"):  # one token per cell
             if getattr(self.data, key) > 0 and not square:
                 raise DegustaError(f"data.{key}: the dense loss, the oracle teacher and the attention supervision "
                                    f"need one image token per grid cell, but model.image_size {self.model.image_size} "
@@ -205,6 +214,16 @@ class StepSampler:
         return iter(range(first, first + self.n))
 
 
+def needs_oracle(d: PretrainData) -> bool:
+    """True when batches carry each cell's oracle token ids (the teacher and the tied readout use them)."""
+    return d.teacher_steps > 0 or d.readout_weight > 0
+
+
+def oracle_key(d: PretrainData) -> str:
+    """The config key an error about the oracle tokens names."""
+    return "teacher_steps" if d.teacher_steps > 0 else "readout_weight"
+
+
 def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -> Path:
     """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it).
     With `data.teacher_steps` or `data.retrieval_weight`, the tokenizer is checked for the oracle teacher and
@@ -218,10 +237,10 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
         return init
     offline()
     model, processor = build_base(cfg.model, seed=cfg.seed)
-    if cfg.data.teacher_steps > 0 and catalog is not None and grid is not None:
+    if needs_oracle(cfg.data) and catalog is not None and grid is not None:
         from degusta_learn.finetune.pretrain.dense import OracleTokens
 
-        OracleTokens(catalog, processor.tokenizer, grid)  # refuses a tokenizer that splits cells or ids
+        OracleTokens(catalog, processor.tokenizer, grid, oracle_key(cfg.data))  # refuses a tokenizer that splits cells or ids
     if cfg.data.retrieval_weight > 0 and catalog is not None and grid is not None:
         from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
 
@@ -272,7 +291,7 @@ def run(cfg: PretrainConfig) -> Path:
         val = make(cfg.seed + 1_000_003, d.val_examples, 1)
         labels = DenseLabels(catalog, side)
         module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
-        oracle = OracleTokens(catalog, processor.tokenizer, grid) if d.teacher_steps > 0 else None
+        oracle = OracleTokens(catalog, processor.tokenizer, grid, oracle_key(d)) if needs_oracle(d) else None
         retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
                                      d.retrieval_list_items) if d.retrieval_weight > 0 else None
         dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
