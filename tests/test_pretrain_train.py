@@ -288,6 +288,30 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     assert [r["step"] for r in table if r.get("train/dense")] == ["0", "1"] and table[-1]["val/perception"]
 
 
+def test_while_the_teacher_holds_the_pull_and_the_readout_train_the_projectors_own_tokens(monkeypatch):
+    from degusta_learn.finetune.pretrain.module import PerceptionModule
+
+    model, processor = _tiny_base()
+    catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
+    cfg = load_config(PretrainConfig, CONFIG, TINY + ["data.tower_steps=3", "data.readout_weight=1"])
+    module = PerceptionModule(model, processor, cfg, catalog, Grid(8, 8), DenseLabels(catalog, 8).n_labels)
+    monkeypatch.setattr(PerceptionModule, "vision_stage", property(lambda self: False))  # the decoder's first step
+    assert module.teacher.probability(module.global_step) == 1.0  # the decoder sees only oracle sums
+    exs = [PerceptionExamples(catalog, tables, Grid(8, 8), 256, 0, 2, TaskMix(), block=1)[i] for i in range(2)]
+    ids, keep = OracleTokens(catalog, processor.tokenizer, Grid(8, 8))(exs), DenseLabels(catalog, 8)(exs)[1]
+    module.teacher.ids, module.teacher.keep = ids, keep
+    pixels = processor.image_processor(images=[getattr(im, "image", im) for ex in exs for im in ex.prompt.images],
+                                       return_tensors="pt")["pixel_values"]
+    model.model.get_image_features(pixel_values=pixels)  # the hook swaps the oracle sums in for the decoder
+    pulled = module._pulled()
+    assert not torch.allclose(pulled[keep], module.teacher.oracle())  # the projector's tokens, not the swap
+    loss = module.teacher.pull(pulled) + module.readout.loss(pulled, ids, keep)
+    assert module.teacher.pull(pulled) > 0.1
+    loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in projector_of(model).parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.model.vision_tower.parameters())
+
+
 @pytest.mark.parametrize("projector", [False, True])
 def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path, projector):
     steps = ["data.tower_steps=1", "data.freeze_tower=true", "data.steps_per_epoch=1", "data.curriculum_steps=1",

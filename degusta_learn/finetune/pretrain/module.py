@@ -65,6 +65,7 @@ class PerceptionModule(FinetuneModule):
         self.dense_weight = cfg.data.dense_weight
         self.dense = None
         self._tokens = self._features = None
+        self._recomputing = False
         self.teacher = None
         from degusta_learn.finetune.pretrain.dense import DenseHead, OracleTeacher, projector_of
 
@@ -90,6 +91,8 @@ class PerceptionModule(FinetuneModule):
             self.retrieval = RetrievalLoss(model, cfg.data.retrieval_layer, cfg.data.retrieval_head)
 
     def _capture(self, module, inputs, output):
+        if self._recomputing:  # `_pulled`'s own projector call: its tokens, never the teacher's
+            return None
         self._tokens = output  # (n_images, tokens, hidden): the vision tower's image tokens
         self._features = inputs[0] if inputs else None  # the tower's output, the projector's input
         if self.teacher is not None and self.training and not self.vision_stage:
@@ -147,7 +150,11 @@ class PerceptionModule(FinetuneModule):
             return self._tokens
         from degusta_learn.finetune.pretrain.dense import projector_of
 
-        return projector_of(unwrap(self.model))(self._features.detach())
+        self._recomputing = True  # the forward hook would swap in the teacher's oracle sums (until November 26 it
+        try:                      # did: while the teacher held, the pull was 0 and trained nothing)
+            return projector_of(unwrap(self.model))(self._features.detach())
+        finally:
+            self._recomputing = False
 
     def _vision_step(self, batch, targets, keep):
         """One step of the vision stage: the tower's tokens of the batch's images and the dense loss alone."""
