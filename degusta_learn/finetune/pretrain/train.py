@@ -226,8 +226,8 @@ def oracle_key(d: PretrainData) -> str:
 
 def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -> Path:
     """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it).
-    With `data.teacher_steps` or `data.retrieval_weight`, the tokenizer is checked for the oracle teacher and
-    the attention supervision (given `catalog` and `grid`) before anything is written."""
+    With `data.teacher_steps`, `data.readout_weight` or `data.retrieval_weight`, the tokenizer is checked for the
+    oracle tokens and the attention supervision (given `catalog` and `grid`) before anything is written."""
     from degusta_learn.fileio import atomic_write_json
     from degusta_learn.vlm.load import offline
     from degusta_learn.finetune.pretrain.base import build_base
