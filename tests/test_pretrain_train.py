@@ -32,7 +32,9 @@ def _overrides(tmp_path: Path, steps: int) -> list[str]:
 
 def test_shipped_pretrain_config_loads_and_is_checked():
     cfg = load_config(PretrainConfig, CONFIG)
-    assert cfg.kind == "pretrain" and cfg.model.tokens_per_image == 64 and cfg.trainer.monitor == "val/perception"
+    assert cfg.kind == "pretrain" and cfg.model.tokens_per_image == 64
+    # the shipped recipe (docs/tiny_base.md, point 19): the readout on, the pull off, the last weights exported
+    assert cfg.data.readout_weight > 0 and cfg.data.teacher_weight == 0 and cfg.trainer.monitor is None
     with pytest.raises(DegustaError, match="model.image_size"):
         load_config(PretrainConfig, CONFIG, ["model.image_size=250"])
     with pytest.raises(DegustaError, match="model.vision_channels"):
@@ -167,9 +169,12 @@ def test_teacher_needs_one_token_per_cell():
     with pytest.raises(DegustaError, match="data.teacher_steps: the dense loss, the oracle teacher and the attention"):
         load_config(PretrainConfig, CONFIG, ["data.grid.rows=6", "data.grid.cols=6", "data.dense_weight=0",
                                              "data.tower_steps=0", "data.teacher_steps=10"])
-    with pytest.raises(DegustaError, match="data.retrieval_weight: the dense loss"):
+    with pytest.raises(DegustaError, match="data.readout_weight: the dense loss"):
         load_config(PretrainConfig, CONFIG, ["data.grid.rows=6", "data.grid.cols=6", "data.dense_weight=0",
                                              "data.tower_steps=0", "data.teacher_steps=0"])
+    with pytest.raises(DegustaError, match="data.retrieval_weight: the dense loss"):
+        load_config(PretrainConfig, CONFIG, ["data.grid.rows=6", "data.grid.cols=6", "data.dense_weight=0",
+                                             "data.tower_steps=0", "data.teacher_steps=0", "data.readout_weight=0"])
 
 
 @pytest.mark.slow
@@ -182,7 +187,9 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     draw = PerceptionExamples.__getitem__
     monkeypatch.setattr(PerceptionExamples, "__getitem__",
                         lambda self, i: (seen.append(i) if self.seed == 0 else None, draw(self, i))[1])
-    out = run_train(CONFIG, _overrides(tmp_path, 2))
+    best_of_validations = ["trainer.monitor=val/perception", "trainer.monitor_mode=max",
+                           "data.teacher_weight=1"]  # and the pull on, which the shipped config has off
+    out = run_train(CONFIG, _overrides(tmp_path, 2) + best_of_validations)
     assert out == tmp_path / "base"
     for name in ("config.json", "model.safetensors", "tokenizer.json", "processor_config.json", "README.md",
                  "degusta_base.json", "pretrain_config.yaml"):
@@ -203,7 +210,7 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     # resume: the same command with more steps continues the run (same initial weights and tokenizer)
     ckpt = tmp_path / "runs" / "p" / "last.ckpt"
     assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 2
-    run_train(CONFIG, _overrides(tmp_path, 6))
+    run_train(CONFIG, _overrides(tmp_path, 6) + best_of_validations)
     assert torch.load(ckpt, weights_only=True, map_location="cpu")["global_step"] == 6
     training = json.loads((out / "degusta_base.json").read_text())["training"]
     best = torch.load(tmp_path / "runs" / "p" / "best.ckpt", weights_only=True, map_location="cpu")["global_step"]
@@ -282,6 +289,11 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     assert any(r.get("train/loss") for r in table) and any(r.get("train/teacher_p") == "1.0" for r in table)
     assert any(r.get("train/readout") for r in table)  # the tied readout trains the projector after the stage
     assert any(r.get("val/perception") not in (None, "", "nan") for r in table)
+    # the shipped config monitors nothing: the last weights are exported, and the card says how they were trained
+    training = json.loads((tmp_path / "base" / "degusta_base.json").read_text())["training"]
+    assert training["steps"] == training["run_steps"] == 4 and not (run / "best.ckpt").exists()
+    card = (tmp_path / "base" / "README.md").read_text()
+    assert "vision stage of 2 steps" in card and "trained to name their cell's content (weight 1.0)" in card
     # and without a resume between them: the stages meet inside one epoch of one process
     run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1", "trainer.run_name=q"])
     table = list(csv.DictReader(next((tmp_path / "runs" / "q" / "csv").rglob("metrics.csv")).open()))
@@ -315,7 +327,8 @@ def test_while_the_teacher_holds_the_pull_and_the_readout_train_the_projectors_o
 @pytest.mark.parametrize("projector", [False, True])
 def test_a_frozen_tower_keeps_what_the_vision_stage_taught_it(tmp_path, projector):
     steps = ["data.tower_steps=1", "data.freeze_tower=true", "data.steps_per_epoch=1", "data.curriculum_steps=1",
-             f"data.freeze_projector={str(projector).lower()}", "data.teacher_steps=2"]
+             f"data.freeze_projector={str(projector).lower()}", "data.teacher_steps=2", "data.teacher_weight=1",
+             "data.readout_weight=0"]  # the pull on (the shipped config has it off), the readout off (it trains the projector)
     run = tmp_path / "runs" / "p"
 
     def weights():

@@ -74,7 +74,10 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
                       "tower_steps": cfg.data.tower_steps, "freeze_tower": cfg.data.freeze_tower,
-                      "freeze_projector": cfg.data.freeze_projector},
+                      "freeze_projector": cfg.data.freeze_projector, "dense_weight": cfg.data.dense_weight,
+                      "readout_weight": cfg.data.readout_weight, "retrieval_weight": cfg.data.retrieval_weight,
+                      "teacher_steps": cfg.data.teacher_steps, "teacher_hold": cfg.data.teacher_hold,
+                      "teacher_weight": cfg.data.teacher_weight},
             validation_curve=curve))
         if (run_dir / "config.yaml").is_file():
             shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
@@ -98,7 +101,24 @@ def _stages(t: dict) -> str:
              else "the tower frozen, the projector and the decoder trained" if t.get("freeze_tower")
              else "all weights")
     return (f"first a vision stage of {t['tower_steps']} steps (the vision tower and projector alone, on a dense "
-            f"per-token loss: what covers each grid cell, its id and direction), then {after}")
+            f"per-token loss: what covers each grid cell, its id and direction), then {after}{_aids(t)}")
+
+
+def _aids(t: dict) -> str:
+    """The decoder stage's auxiliary losses and teacher, in the card's words (older records lack the keys)."""
+    aids = []
+    if t.get("teacher_steps"):
+        aids.append(f"for the first {t.get('teacher_hold', 0) + t['teacher_steps']} steps after it the decoder saw "
+                    "perfect image tokens (sums of the embeddings of each cell's content) with a probability "
+                    "falling from 1 to 0" + (f", the projector's tokens pulled towards them (weight "
+                                              f"{t['teacher_weight']})" if t.get("teacher_weight") else ""))
+    if t.get("readout_weight"):
+        aids.append("the projector's tokens, read through the decoder's output layer, trained to name their cell's "
+                    f"content (weight {t['readout_weight']})")
+    if t.get("retrieval_weight"):
+        aids.append("one decoder head told which image token holds the object an answer names "
+                    f"(weight {t['retrieval_weight']})")
+    return "".join(f"; {a}" for a in aids)
 
 
 def write_card(folder: Path, name: str | None = None, path: Path | None = None) -> Path:

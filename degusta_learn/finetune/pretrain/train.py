@@ -1,6 +1,6 @@
 """`degusta train` with `kind: pretrain`: teach a tiny base VLM to *see* lifted images, from random weights.
 
-Usage (the shipped base: about 90 minutes on a 2-core CPU, resumable by running the same command again):
+Usage (the shipped base: about 87 minutes on a 2-core CPU, resumable by running the same command again):
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml --set trainer.max_steps=40 --set data.tower_steps=20 \
         --set data.steps_per_epoch=20 --set trainer.run_name=pretrain_smoke --set export=runs/base_smoke   # smoke
@@ -12,9 +12,11 @@ never the DegustaBot question). An "epoch" is `data.steps_per_epoch` steps of fr
 sampler starts at the steps already trained, `StepSampler`, so no example repeats or is skipped, resumed
 or not); each epoch ends with a
 validation that generates answers to `data.val_examples` held-out questions (another seed) and logs
-val/object_f1, val/cells_exact, val/direction, val/mark_id and their mean val/perception, which picks
-best.ckpt. At the end the best weights are written to `export` as a plain Hugging Face model folder
-(config, safetensors, processor, tokenizer) with `degusta_base.json` and a model card (README.md).
+val/object_f1, val/cells_exact, val/direction, val/mark_id and their mean val/perception. At the end the
+weights are written to `export` as a plain Hugging Face model folder (config, safetensors, processor,
+tokenizer) with `degusta_base.json` and a model card (README.md): those of best.ckpt when `trainer.monitor`
+names a metric (e.g. val/perception), else the last ones (the shipped config: its 16 validation questions
+picked worse weights than the last twice, docs/tiny_base.md points 18-19).
 """
 
 from __future__ import annotations
@@ -304,7 +306,7 @@ def run(cfg: PretrainConfig) -> Path:
         if module.trainer is not None and not module.trainer.is_global_zero:
             return Path(cfg.export)
         best, step = run_dir / BEST, module.global_step
-        if best.is_file():  # export the best validation, not merely the last weights
+        if best.is_file():  # trainer.monitor set: export the best validation, not merely the last weights
             state = torch.load(best, map_location="cpu", weights_only=True)
             module.load_state_dict(state["state_dict"])
             step = int(state.get("global_step", step))
