@@ -6,7 +6,7 @@ the base LoRA-fine-tuned by `configs/finetune_tiny_base_cpu.yaml` (timed), the b
 same steps (`lora.mode=full`), and the heuristic baselines and the oracle. Prints one markdown table
 (object accuracy, Kabsch RMSD, set RMSD, count error, objects per answer, few-matched share), the paired
 bootstrap tests the issue asks for (fine-tuned vs population_mean on Kabsch RMSD, fine-tuned minus
-zero-shot), the ratio to copy_nearest, and plots the LoRA run's learning curve (validation RMSD, set
+zero-shot), the ratio to copy_nearest, and plots both runs' learning curves (validation RMSD, set
 RMSD and parse rate against steps).
 
 Usage:
@@ -29,35 +29,45 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
 
 
-def plot_curve(run_dir: Path, out: Path) -> Path | None:
-    """Validation RMSD, set RMSD and parse rate of a fine-tuning run against steps (PNG)."""
+def _validations(run_dir: Path) -> list[dict]:
+    """The validation rows of a fine-tuning run's CSV logs (resumed runs included), by step."""
     import csv
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     rows = []
     for path in sorted(run_dir.glob("csv/version_*/metrics.csv")):
         with path.open(newline="") as f:
             rows += [r for r in csv.DictReader(f) if r.get("val/rmsd")]
-    if not rows:
+    return sorted(rows, key=lambda r: int(float(r["step"])))
+
+
+def plot_curve(runs: dict[str, Path], out: Path) -> Path | None:
+    """Validation Kabsch RMSD, set RMSD, object accuracy and parse rate against steps, one panel per run (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = {name: rows for name, run_dir in runs.items() if (rows := _validations(run_dir))}
+    if not curves:
         return None
-    steps = [int(float(r["step"])) + 1 for r in rows]
-    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=120)
-    for key, label in (("val/rmsd", "Kabsch RMSD (paper)"), ("val/set_rmsd", "set RMSD"),
-                       ("val/object_accuracy", "object accuracy")):
-        if rows[0].get(key) not in (None, ""):
-            ax.plot(steps, [float(r[key]) for r in rows], marker="o", ms=3, label=label)
-    ax.set(xlabel="LoRA step", ylabel="validation score", title="Tiny base VLM, LoRA on MOGMA (val participants, k=4)")
-    ax2 = ax.twinx()
-    ax2.plot(steps, [float(r["val/parse_rate"]) for r in rows], color="grey", ls="--", label="parse rate")
-    ax2.set(ylabel="parse rate", ylim=(0, 1.05))
-    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
-    labels = ax.get_legend_handles_labels()[1] + ax2.get_legend_handles_labels()[1]
-    ax.legend(lines, labels, fontsize=8, loc="center right")
-    ax.grid(alpha=0.3)
+    fig, axes = plt.subplots(1, len(curves), figsize=(5.2 * len(curves), 3.6), dpi=120, sharey=True, squeeze=False)
+    for ax, (name, rows) in zip(axes[0], curves.items()):
+        steps = [int(float(r["step"])) + 1 for r in rows]
+        for key, label in (("val/set_rmsd", "set RMSD"), ("val/rmsd", "Kabsch RMSD (paper)"),
+                           ("val/object_accuracy", "object accuracy")):
+            if rows[0].get(key) not in (None, ""):
+                ax.plot(steps, [float(r[key]) for r in rows], marker="o", ms=4, label=label)
+        ax.set(xlabel="fine-tuning step", title=f"{name} (val participants, k=4)", xlim=(0, max(steps) * 1.05))
+        ax2 = ax.twinx()
+        ax2.plot(steps, [float(r["val/parse_rate"]) for r in rows], color="grey", ls="--", marker="s", ms=3,
+                 label="parse rate")
+        ax2.set(ylim=(0, 1.05))
+        ax2.set_ylabel("parse rate" if ax is axes[0][-1] else "")
+        lines, labels = (a + b for a, b in zip(ax.get_legend_handles_labels(), ax2.get_legend_handles_labels()))
+        ax.legend(lines, labels, fontsize=8, loc="center right")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("validation score")
+    fig.suptitle("Tiny base VLM fine-tuned on MOGMA", fontsize=11)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
@@ -75,6 +85,8 @@ def main() -> None:
     ap.add_argument("--full-lr", type=float, default=5e-4, help="learning rate of full fine-tuning")
     ap.add_argument("--reuse", action="store_true", help="keep finished fine-tuning runs and prediction files")
     ap.add_argument("--plot", default="docs/images/vlm_learning_curve.png")
+    ap.add_argument("--val-every", type=int, default=29,
+                    help="fine-tuning steps between validations (the learning curve's points; 29: three an epoch)")
     args = ap.parse_args()
 
     import numpy as np
@@ -111,7 +123,8 @@ def main() -> None:
             t0 = time.time()
             run_train("configs/finetune_tiny_base_cpu.yaml", [f"dataset={args.dataset}", f"model.name={args.base}",
                                                           f"trainer.run_dir={out / 'checkpoints'}",
-                                                          f"trainer.run_name={name}", "trainer.progress_bar=false"]
+                                                          f"trainer.run_name={name}", "trainer.progress_bar=false",
+                                                          f"trainer.val_check_interval={args.val_every}"]
                       + extra)
             seconds[f"fine-tune {mode}"] = time.time() - t0
         if mode == "lora":
@@ -167,7 +180,8 @@ def main() -> None:
         ratio = summary[f"tiny_vlm_{m}"]["rmsd"][0] / summary["copy_nearest"]["rmsd"][0]
         print(f"\ntiny_vlm_{m}: Kabsch RMSD / copy_nearest = {ratio:.2f} (goal <= 1.15)")
     print("\nseconds:", json.dumps({k: round(v) for k, v in seconds.items()}))
-    plot = plot_curve(out / "checkpoints" / "tiny_vlm_lora", Path(args.plot)) if "lora" in args.modes else None
+    plot = plot_curve({("LoRA" if m == "lora" else "full fine-tuning"): out / "checkpoints" / f"tiny_vlm_{m}"
+                       for m in args.modes}, Path(args.plot))
     if plot:
         print(f"learning curve: {plot}")
     (out / "results.json").write_text(json.dumps({"summary": summary, "tests": tests, "seconds": seconds},
