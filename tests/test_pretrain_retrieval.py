@@ -140,6 +140,9 @@ def test_retrieval_settings_are_checked_before_anything_is_written(tmp_path):
     with pytest.raises(DegustaError, match="data.retrieval_weight"):
         load_config(PretrainConfig, CONFIG, ["data.retrieval_weight=-1"])
     load_config(PretrainConfig, CONFIG, ["data.retrieval_layer=9", "data.retrieval_weight=0"])  # off: not checked
+    small = _overrides(tmp_path, 1) + ["model.vocab_size=600", "data.teacher_steps=0"]
+    with pytest.raises(DegustaError, match="data.readout_weight: the tokenizer splits"):  # the shipped readout first
+        run_train(CONFIG, small)
     with pytest.raises(DegustaError, match="data.retrieval_weight: the tokenizer splits"):
-        run_train(CONFIG, _overrides(tmp_path, 1) + ["model.vocab_size=600", "data.teacher_steps=0"])
+        run_train(CONFIG, small + ["data.readout_weight=0"])
     assert not (tmp_path / "runs" / "p" / "init").exists()
