@@ -29,17 +29,6 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
 
 
-def _validations(run_dir: Path) -> list[dict]:
-    """The validation rows of a fine-tuning run's CSV logs (resumed runs included), by step."""
-    import csv
-
-    rows = []
-    for path in sorted(run_dir.glob("csv/version_*/metrics.csv")):
-        with path.open(newline="") as f:
-            rows += [r for r in csv.DictReader(f) if r.get("val/rmsd")]
-    return sorted(rows, key=lambda r: int(float(r["step"])))
-
-
 def plot_curve(runs: dict[str, Path], out: Path) -> Path | None:
     """Validation Kabsch RMSD, set RMSD, object accuracy and parse rate against steps, one panel per run (PNG)."""
     import matplotlib
@@ -47,19 +36,21 @@ def plot_curve(runs: dict[str, Path], out: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    curves = {name: rows for name, run_dir in runs.items() if (rows := _validations(run_dir))}
+    from degusta_learn.trainer import validation_curve
+
+    curves = {name: rows for name, run_dir in runs.items() if (rows := validation_curve(run_dir, "val/rmsd"))}
     if not curves:
         return None
     fig, axes = plt.subplots(1, len(curves), figsize=(5.2 * len(curves), 3.6), dpi=120, sharey=True, squeeze=False)
     for ax, (name, rows) in zip(axes[0], curves.items()):
-        steps = [int(float(r["step"])) + 1 for r in rows]
+        steps = [r["step"] + 1 for r in rows]
         for key, label in (("val/set_rmsd", "set RMSD"), ("val/rmsd", "Kabsch RMSD (paper)"),
                            ("val/object_accuracy", "object accuracy")):
-            if rows[0].get(key) not in (None, ""):
-                ax.plot(steps, [float(r[key]) for r in rows], marker="o", ms=4, label=label)
+            if key in rows[0]:
+                ax.plot(steps, [r.get(key, math.nan) for r in rows], marker="o", ms=4, label=label)
         ax.set(xlabel="fine-tuning step", title=f"{name} (val participants, k=4)", xlim=(0, max(steps) * 1.05))
         ax2 = ax.twinx()
-        ax2.plot(steps, [float(r["val/parse_rate"]) for r in rows], color="grey", ls="--", marker="s", ms=3,
+        ax2.plot(steps, [r.get("val/parse_rate", math.nan) for r in rows], color="grey", ls="--", marker="s", ms=3,
                  label="parse rate")
         ax2.set(ylim=(0, 1.05))
         ax2.set_ylabel("parse rate" if ax is axes[0][-1] else "")

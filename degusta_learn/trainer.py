@@ -314,6 +314,26 @@ def build_loggers(cfg: TrainerConfig, run: Path) -> list:
     return made
 
 
+
+def validation_curve(run: Path, key: str) -> list[dict]:
+    """The rows of a run's CSV logs (every `csv/version_*`, so resumed runs too) where `key` was logged, one per
+    step (a later version's row wins), by step: {"step": int, "val/...": float} with NaN (not measured) left out."""
+    import csv
+    import math
+
+    rows: dict[int, dict] = {}
+    for path in sorted((Path(run) / "csv").glob("version_*/metrics.csv")):
+        with path.open(newline="") as f:
+            for row in csv.DictReader(f):
+                if not row.get(key):
+                    continue
+                step = int(float(row["step"]))
+                rows[step] = {"step": step, **{k: round(float(v), 4) for k, v in row.items()
+                                               if k.startswith("val/") and v not in ("", None)
+                                               and math.isfinite(float(v))}}
+    return [rows[s] for s in sorted(rows)]
+
+
 def _check_cpu_devices(cfg: TrainerConfig) -> None:
     """On CPU every device is a process holding a full model copy: a count >= 1, at most the cores here.
 

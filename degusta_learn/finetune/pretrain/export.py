@@ -16,31 +16,15 @@ Example:
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import math
 import shutil
 from pathlib import Path
 
 from degusta_learn.fileio import atomic_write_text, read_json
+from degusta_learn.trainer import validation_curve
 from degusta_learn.vlm.record import BASE_FILE as BASE_META  # the record's file name, defined once
 PERCEPTION = "perception.json"
 COMMAND = "degusta train --config configs/pretrain_tiny_vlm_cpu.yaml"
-
-
-def training_curve(run_dir: Path) -> list[dict]:
-    """Validation rows {step, val/...} of every CSV log version of a run (resumed runs included), by step."""
-    rows: dict[int, dict] = {}
-    for path in sorted((run_dir / "csv").glob("version_*/metrics.csv")):
-        with path.open(newline="") as f:
-            for row in csv.DictReader(f):
-                if not row.get("val/perception"):
-                    continue
-                step = int(float(row["step"]))
-                rows[step] = {"step": step, **{k: round(float(v), 4) for k, v in row.items()  # NaN: not measured
-                                               if k.startswith("val/") and v not in ("", None)
-                                               and math.isfinite(float(v))}}
-    return [rows[s] for s in sorted(rows)]
 
 
 def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None,
@@ -56,7 +40,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     from degusta_learn.vlm.record import BaseRecord, write_record
 
     out = Path(out)
-    curve = training_curve(run_dir)
+    curve = validation_curve(run_dir, "val/perception")
     arch = cfg.model
     n_params = sum(p.numel() for p in model.parameters())
     with write_folder(out, MODEL_FOLDER) as tmp:  # no perception.json: a benchmark of earlier weights is stale

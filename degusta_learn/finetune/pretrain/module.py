@@ -10,9 +10,10 @@ those sums, with `data.readout_weight > 0` the tied readout (`dense.TiedReadout`
 through the decoder's output layer should name their cell's content; logged as train/readout and, at
 validation, val/token_type / val/token_id / val/token_direction), and, with `data.retrieval_weight > 0`, the
 attention supervision (`retrieval.py`): one decoder head is told where the object an answer names is among
-the image tokens. With `data.tower_steps > 0` a vision stage comes first: only the tower, its projector and the dense head train, on the dense loss alone,
-and the decoder's warmup and cosine schedule (and the teacher's hold) start after it; with `data.freeze_tower`
-the tower then stays as the stage left it, with `data.freeze_projector` its projector too. Validation always sees
+the image tokens. With `data.tower_steps > 0` a vision stage comes first: only the tower, its projector and
+the dense head train, on the dense loss alone, and the decoder's warmup and cosine schedule (and the teacher's
+hold) start after it; with `data.freeze_tower` the tower then stays as the stage left it, with
+`data.freeze_projector` its projector too. Validation always sees
 the tower's tokens and logs the dense head's readouts of them (val/tower_type, val/tower_id: the id among
 its type's objects, val/tower_direction); the vision stage's validations answer no questions (val/perception
 is NaN there, which best.ckpt ranks last).
@@ -144,8 +145,8 @@ class PerceptionModule(FinetuneModule):
     def _pulled(self):
         """The image tokens the teacher's pull and the tied readout act on. After a vision stage they train the
         projector only, on the tower's detached output: the tower has learned to see, and the pull (whose targets,
-        the decoder's embedding sums, have another scale) would otherwise write over it (measured: the tower's id readout fell
-        from 0.57 to 0.06 within 50 steps, docs/tiny_base.md point 16)."""
+        the decoder's embedding sums, have another scale) would otherwise write over it (measured: the tower's id
+        readout fell from 0.57 to 0.06 within 50 steps, docs/tiny_base.md point 16)."""
         if self.tower_steps <= 0 or self._features is None:
             return self._tokens
         from degusta_learn.finetune.pretrain.dense import projector_of
