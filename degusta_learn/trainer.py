@@ -632,6 +632,27 @@ def _atomic_checkpoint_io():
     return AtomicCheckpointIO()
 
 
+def _resumed_log_step():
+    """A callback that restarts Lightning's logging step at the global step when a run resumes.
+
+    Lightning restores its logging step (`_batches_that_stepped`) from the checkpoint and then adds one for some
+    restart points; from our checkpoints (written at a validation, at an epoch's end, at the end of `fit`) every
+    resume shifted the logged steps by one more (a 6,300-step run resumed twice logged its last validation at
+    6,302, and its learning curve and model card said so). With automatic optimization, at the start of a
+    training batch the logging step of an uninterrupted run equals `global_step` (both count optimizer steps,
+    with or without gradient accumulation): it is set there, a no-op unless the run was resumed.
+    """
+    from lightning.pytorch.callbacks import Callback
+
+    class ResumedLogStep(Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+            loop = trainer.fit_loop.epoch_loop
+            if pl_module.automatic_optimization and hasattr(loop, "_batches_that_stepped"):
+                loop._batches_that_stepped = trainer.global_step
+
+    return ResumedLogStep()
+
+
 def _monitor_guard(monitor: str):
     """A callback that fails fast, with a one-line error, when a validation did not log `monitor`.
 
@@ -704,7 +725,7 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
                              auto_insert_metric_name=False, save_on_train_epoch_end=False)] if cfg.monitor else []
     ckpts.append(ModelCheckpoint(dirpath=run, filename=LAST[:-5], monitor=None, save_top_k=1, save_last=False,
                                  enable_version_counter=False, auto_insert_metric_name=False))
-    cbs = [*ckpts, *(callbacks or [])]
+    cbs = [*ckpts, *(callbacks or []), _resumed_log_step()]
     if cfg.monitor:
         cbs.append(_monitor_guard(cfg.monitor))  # before EarlyStopping: its one-line error comes first
     if cfg.early_stopping_patience is not None:  # counts validations (checked after each, never at epoch end);

@@ -7,7 +7,7 @@ from torch.utils.data import DataLoader, TensorDataset
 
 from degusta_learn.config import from_dict, read_yaml
 from degusta_learn.errors import DegustaError
-from degusta_learn.trainer import TrainerConfig, fit, prepare_run_dir
+from degusta_learn.trainer import TrainerConfig, fit, prepare_run_dir, validation_curve
 
 
 class Toy(L.LightningModule):
@@ -65,6 +65,10 @@ def test_fit_writes_run_folder_and_resumes(tmp_path):
     fit(Toy(), ToyData(), cfg(tmp_path, max_steps=7), full_config={**full, "trainer": {"max_steps": 7}})
     assert torch.load(run / "last.ckpt", weights_only=True)["global_step"] == 7
     assert (run / "csv/version_0/metrics.csv").is_file() and (run / "csv/version_1/metrics.csv").is_file()
+    # resumed again: the logged steps go on where an uninterrupted run's would be (Lightning's restored logging
+    # step was one ahead per resume: validations after steps 2, 4, 6, 8, 10 logged at 1, 3, 6, 8, 11 before)
+    fit(Toy(), ToyData(), cfg(tmp_path, max_steps=10), full_config={**full, "trainer": {"max_steps": 10}})
+    assert [r["step"] for r in validation_curve(run, "val/rmsd")] == [1, 3, 5, 7, 9]
 
 
 def test_refuses_to_overwrite_or_mix_runs(tmp_path):
