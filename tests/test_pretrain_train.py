@@ -294,6 +294,7 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     assert training["steps"] == training["run_steps"] == 4 and not (run / "best.ckpt").exists()
     card = (tmp_path / "base" / "README.md").read_text()
     assert "vision stage of 2 steps" in card and "trained to name their cell's content (weight 1.0)" in card
+    assert "first 2 decoder steps asked one-scene questions only (0.5 describe, 0.35 locate, 0.15 lists)" in card
     # and without a resume between them: the stages meet inside one epoch of one process
     run_train(CONFIG, _overrides(tmp_path, 2) + ["data.tower_steps=1", "trainer.run_name=q"])
     table = list(csv.DictReader(next((tmp_path / "runs" / "q" / "csv").rglob("metrics.csv")).open()))

@@ -61,7 +61,8 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
                       "freeze_projector": cfg.data.freeze_projector, "dense_weight": cfg.data.dense_weight,
                       "readout_weight": cfg.data.readout_weight, "retrieval_weight": cfg.data.retrieval_weight,
                       "teacher_steps": cfg.data.teacher_steps, "teacher_hold": cfg.data.teacher_hold,
-                      "teacher_weight": cfg.data.teacher_weight},
+                      "teacher_weight": cfg.data.teacher_weight, "curriculum_steps": cfg.data.curriculum_steps,
+                      "curriculum_mix": dataclasses.asdict(cfg.data.curriculum_mix)},
             validation_curve=curve))
         if (run_dir / "config.yaml").is_file():
             shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
@@ -103,6 +104,15 @@ def _aids(t: dict) -> str:
         aids.append("one decoder head told which image token holds the object an answer names "
                     f"(weight {t['retrieval_weight']})")
     return "".join(f"; {a}" for a in aids)
+
+
+def _curriculum(t: dict) -> str:
+    """The decoder stage's first questions, in the card's words (older records lack the keys)."""
+    if not t.get("curriculum_steps"):
+        return ""
+    mix = t["curriculum_mix"]
+    asked = ", ".join(f"{mix[k]:g} {k}" for k in ("describe", "locate", "lists", "gomo") if mix.get(k))
+    return f"; its first {t['curriculum_steps']} decoder steps asked one-scene questions only ({asked})"
 
 
 def write_card(folder: Path, name: str | None = None, path: Path | None = None) -> Path:
@@ -155,7 +165,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
            else "") +
         f"of {t['batch_size']} examples ({t['examples']} examples, every one a freshly rendered random scene), "
         f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, {_stages(t)}, on a CPU. "
-        f"Catalog and tables: {meta['catalog']}. Task mix: {t['mix']}.", "",
+        f"Catalog and tables: {meta['catalog']}. Task mix: {t['mix']}{_curriculum(t)}.", "",
         "## Perception scores", "",
     ]
     if bench:

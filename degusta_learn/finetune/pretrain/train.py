@@ -97,7 +97,9 @@ class PretrainData:
         objects_sheet=0.0, empty_table=0.0))
     """The questions of the first `curriculum_steps` steps: one scene, up to eight *describe* questions about it,
     each answered before the next, the task shape on which a decoder from scratch learns to find an object's
-    id among the image tokens (docs/tiny_base.md, point 13; *locate* questions were ~3x slower)."""
+    id among the image tokens (docs/tiny_base.md, point 13; *locate* questions alone were ~3x slower). The shipped
+    config adds *locate* and list questions to it: with *describe* alone the decoder never learned to take the
+    next named object (point 21)."""
 
     def __post_init__(self):
         for key in ("steps_per_epoch", "batch_size", "max_length"):
