@@ -314,7 +314,6 @@ def build_loggers(cfg: TrainerConfig, run: Path) -> list:
     return made
 
 
-
 def validation_curve(run: Path, key: str) -> list[dict]:
     """The rows of a run's CSV logs (every `csv/version_*`, so resumed runs too) where `key` was logged, one per
     step (a later version's row wins), by step: {"step": int, "val/...": float} with NaN (not measured) left out."""
