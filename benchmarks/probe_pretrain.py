@@ -49,6 +49,11 @@ def tally(pred, target, tasks, kinds, counts) -> None:
             previous = kind
 
 
+def task_label(meta: dict) -> str:
+    """A question's row in the table: its task, list questions split by the order asked (reading / placement)."""
+    return f"{meta['task']}/{meta['order']}" if meta.get("order") else meta["task"]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a pretraining run folder (config.yaml, init/, last.ckpt)")
@@ -103,14 +108,14 @@ def main(argv=None) -> int:
             for oracle in (False, True):
                 use_oracle[0] = oracle
                 pred = model(**batch).logits[:, :-1].argmax(-1)
-                tally(pred, target, [e.meta["task"] for e in exs], kinds, counts[oracle])
+                tally(pred, target, [task_label(e.meta) for e in exs], kinds, counts[oracle])
     step = state.get("global_step", "?")
     print(f"{ckpt} (step {step}): teacher-forced accuracy of answer tokens, right/total")
     keys = sorted(set(counts[False]) | set(counts[True]))
-    print(f"{'task:token':18s} {'tower':>14s} {'oracle':>14s}")
+    print(f"{'task:token':24s} {'tower':>14s} {'oracle':>14s}")
     for k in keys:
         cells = [f"{a / n:.2f} ({a}/{n})" if n else "-" for a, n in (counts[False][k], counts[True][k])]
-        print(f"{k:18s} {cells[0]:>14s} {cells[1]:>14s}")
+        print(f"{k:24s} {cells[0]:>14s} {cells[1]:>14s}")
     return 0
 
 
