@@ -7,9 +7,10 @@ pixels the object changed against the empty grid-marked table, and describes the
 histogram (8 bins a channel). Half of an object's views are averaged into its reference; each other view
 is named by its nearest reference (L1) among the objects of its type. The score is that top-1 id accuracy
 within the type (chance: 1 / objects of the type); "pooled": all of an object's query views averaged first
-(one object seen in several scenes, as a person's favourite objects are across their context tables). It needs no training and no model: a floor on what the
-pixels of one view allow (a learned tower may also use shape and pattern), to set beside
-`benchmarks/bench_tower_ids.py`'s learned readout (0.5-0.56 at 256 px) and the `--sizes` a base could use.
+(one object seen in several scenes, as a person's favourite objects are across their context tables). It
+needs no training and no model: a floor on what the pixels of one view allow (a learned tower may also use
+shape and pattern), to set beside `benchmarks/bench_tower_ids.py`'s learned readout (0.5-0.56 at 256 px) and
+the `--sizes` a base could use.
 
 Usage:
     python benchmarks/bench_id_colour.py                        # sizes 128 256 384 512, 8 views: ~40 s
