@@ -1,9 +1,7 @@
 """benchmarks/analyze_answers.py: ids, types and counts of VLM answers, kept and free."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+from benchmark_support import load_benchmark
 
 from degusta_learn.prompting.answers import answer_items, format_answer
 from degusta_learn.render.grid import Grid
@@ -11,15 +9,10 @@ from degusta_learn.scene.episodes import make_episodes, write_episodes
 from degusta_learn.scene.predictions import write_predictions
 from degusta_learn.scene.types import Prediction
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "analyze_answers.py"
-
 
 @pytest.fixture(scope="module")
 def analyze():
-    spec = importlib.util.spec_from_file_location("analyze_answers", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("analyze_answers")
 
 
 def test_copying_a_context_table_and_a_free_answer_that_repeats(analyze, small_dataset, small_dataset_dir, tmp_path,

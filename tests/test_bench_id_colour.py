@@ -1,20 +1,13 @@
 """benchmarks/bench_id_colour.py: the colour-histogram reference for telling a type's objects apart."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_id_colour.py"
+from benchmark_support import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_id_colour", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_id_colour")
 
 
 def test_histogram_counts_only_the_changed_pixels(bench):
