@@ -50,6 +50,7 @@ def analyze(ds, episodes: dict, predictions, grid) -> dict:
     from degusta_learn.prompting.answers import answer_kind
 
     catalog = ds.catalog
+    types = lambda ids: Counter(catalog[i].type for i in ids)  # noqa: E731
     kept, free = [], []
     pred_in_ctx = gt_in_ctx = n_pred = n_gt = type_hits = repeats = 0
     for p in predictions:
@@ -61,7 +62,6 @@ def analyze(ds, episodes: dict, predictions, grid) -> dict:
         pred_in_ctx += sum(i in context for i in ids)
         gt_in_ctx += sum(i in context for i in gt_ids)
         n_pred, n_gt = n_pred + len(ids), n_gt + len(gt_ids)
-        types = lambda xs: Counter(catalog[i].type for i in xs)  # noqa: E731
         type_hits += sum((types(ids) & types(gt_ids)).values())
         repeats += bool(((p.diagnostics or {}).get("decoding") or {}).get("repeat_stops"))
         kept.append(score_prediction(catalog, gt, p.placements, p.failed))
@@ -99,8 +99,9 @@ def main(argv=None) -> int:
     try:
         ds = load_dataset(args.dataset)
         episodes = {e.id: e for e in read_episodes(args.episodes, ds)}
-        rows = [(_name(path), analyze(ds, episodes, read_predictions(path, ds.catalog, episodes),
-                                    Grid(args.grid, args.grid))) for path in args.predictions]
+        grid = Grid(args.grid, args.grid)
+        rows = [(_name(path), analyze(ds, episodes, read_predictions(path, ds.catalog, episodes), grid))
+                for path in args.predictions]
     except DegustaError as e:
         raise SystemExit(f"analyze_answers: {e}") from None
     print("| predictions | episodes | object accuracy (kept / free) | set RMSD (kept / free) | objects / answer "
