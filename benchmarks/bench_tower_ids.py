@@ -46,6 +46,7 @@ def main() -> None:
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import default_catalog, default_tables
+    from degusta_learn.trainer import cpu_has_native_bf16
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -85,13 +86,15 @@ def main() -> None:
               f"id within type {r['id']:.3f}, direction {r['direction']:.3f} ({r['cells']} cells)")
         return
     rows, t0 = [], time.time()
-    print(f"tower + projector + dense head, {sum(p.numel() for p in params):,} parameters, batch {args.batch}")
+    bf16 = cpu_has_native_bf16()  # emulated bfloat16 (AVX2 CPUs) is ~60x slower than float32
+    print(f"tower + projector + dense head, {sum(p.numel() for p in params):,} parameters, batch {args.batch}, "
+          f"{'bf16 autocast' if bf16 else 'float32 (no native bfloat16 on this CPU)'}")
     for step in range(1, args.steps + 1):
         for group in opt.param_groups:
             group["lr"] = args.lr * min(1.0, step / 100)
         batch = [train[(step - 1) * args.batch + j] for j in range(args.batch)]
         targets, keep = labels(batch)
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             loss = head.loss(tokens(batch), targets, keep)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)

@@ -687,6 +687,14 @@ def torch_threads(n: int | None):
         torch.set_num_threads(before)
 
 
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX); elsewhere torch emulates it, ~60x slower
+    than float32 (`run_precision`): autocast to bfloat16 on the CPU only where this is true."""
+    import torch
+
+    return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def run_precision(cfg: TrainerConfig) -> str:
     """The precision Lightning gets: `cfg.precision`, except bfloat16 on a CPU that has no native bfloat16
     (AVX512-BF16 or AMX), which runs it emulated: measured on an AVX2 EPYC, a 3x3 convolution 127x and a matmul
@@ -697,7 +705,7 @@ def run_precision(cfg: TrainerConfig) -> str:
         return cfg.precision
     if cfg.accelerator == "auto" and torch.cuda.is_available():
         return cfg.precision
-    if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+    if cpu_has_native_bf16():
         return cfg.precision
     print(f"degusta: note: trainer.precision {cfg.precision}: this CPU has no native bfloat16 (AVX512-BF16/AMX) "
           f"and emulates it ~60x slower than float32; training in 32-true", file=sys.stderr)
