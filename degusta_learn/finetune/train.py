@@ -128,6 +128,7 @@ def run(cfg: FinetuneConfig) -> Path:
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.export import save_last, sync_best
+    from degusta_learn.finetune.tower_cache import cache_frozen_tower
     from degusta_learn.vlm.generate import chat_format
     from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing, monitor_keys
     from degusta_learn.prompting import answer_kind
@@ -141,6 +142,8 @@ def run(cfg: FinetuneConfig) -> Path:
         model, processor = prepare_model(cfg)
         if cfg.model.gradient_checkpointing:
             enable_gradient_checkpointing(model)
+        if cfg.model.cache_tower:
+            cache_frozen_tower(model)
         fmt = chat_format(model, processor)
         collator = Collator(processor, fmt, cfg.data.max_length, getattr(model.config, "image_token_id", None))
         train, val = build_examples(cfg, ds, grid)
