@@ -13,6 +13,8 @@ Usage:
     python benchmarks/bench_vlm.py                         # ~35 CPU minutes: 2 fine-tunings + 3 x 200 answers
     python benchmarks/bench_vlm.py --episodes 40 --modes lora --out runs/bench_vlm_quick
     python benchmarks/bench_vlm.py --reuse                 # re-score: keep finished runs and predictions
+    python benchmarks/bench_vlm.py --modes lora --set trainer.max_steps=261 --out runs/bench_vlm_3ep
+        # --set: fine-tuning overrides (here three epochs instead of one)
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ def main() -> None:
     ap.add_argument("--plot", default="docs/images/vlm_learning_curve.png")
     ap.add_argument("--val-every", type=int, default=29,
                     help="fine-tuning steps between validations (the learning curve's points; 29: three an epoch)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="a fine-tuning config override for both runs, e.g. trainer.max_steps=261 (repeatable)")
     args = ap.parse_args()
 
     import numpy as np
@@ -116,7 +120,7 @@ def main() -> None:
                                                           f"trainer.run_dir={out / 'checkpoints'}",
                                                           f"trainer.run_name={name}", "trainer.progress_bar=false",
                                                           f"trainer.val_check_interval={args.val_every}"]
-                      + extra)
+                      + extra + args.overrides)
             seconds[f"fine-tune {mode}"] = time.time() - t0
         if mode == "lora":
             hf(name, "configs/predict_hf_base_finetuned.yaml", [f"backend.adapter={run_dir / 'adapter'}"])
