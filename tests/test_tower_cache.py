@@ -107,13 +107,14 @@ def test_other_tensor_inputs_and_active_dropout_bypass_the_cache():
     assert tower_is_frozen(root.vision_model)
 
 
-def test_the_cache_keeps_at_most_max_images_and_tells_pictures_apart_by_their_bytes():
+def test_the_cache_keeps_at_most_max_bytes_and_tells_pictures_apart_by_their_bytes():
     model, tower = _frozen_base()
-    cache = cache_frozen_tower(model, max_images=2)
+    one = 64 * 16 * 4  # a picture's features: 8 x 8 tokens of the last 16 channels, float32
+    cache = cache_frozen_tower(model, max_bytes=2 * one + 1)
     seen = _counting(cache)
     pics = _pictures(3)
     model.model.get_image_features(pixel_values=pics)
-    assert len(cache.features) == 2 and seen == [3]
+    assert len(cache.features) == 2 and cache.bytes == 2 * one and seen == [3]
     model.model.get_image_features(pixel_values=pics[2:])  # the newest stays
     assert seen == [3]
     model.model.get_image_features(pixel_values=pics[:1])  # the oldest went
@@ -147,3 +148,15 @@ def test_find_tower_knows_the_tower_names(name):
     setattr(root.inner, name, torch.nn.Linear(2, 2))
     assert find_tower(root) is getattr(root.inner, name)
     assert find_tower(torch.nn.Linear(2, 2)) is None
+
+
+def test_features_computed_under_autocast_are_kept_apart_from_full_precision_ones():
+    model, _ = _frozen_base()
+    cache = cache_frozen_tower(model)
+    pics = _pictures(1)
+    plain = model.model.vision_tower(pics).last_hidden_state
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        half = model.model.vision_tower(pics).last_hidden_state
+    assert (cache.misses, cache.hits) == (2, 0)
+    assert plain.dtype == torch.float32 and half.dtype == torch.bfloat16
+    assert model.model.vision_tower(pics).last_hidden_state.dtype == torch.float32 and cache.hits == 1

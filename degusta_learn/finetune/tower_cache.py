@@ -48,11 +48,16 @@ def tower_is_frozen(tower: nn.Module) -> bool:
                    for m in tower.modules() if isinstance(m, _STATEFUL))
 
 
-class TowerCache:
-    """Per-image `last_hidden_state` of a frozen tower, keyed by its pixel values' bytes (LRU, `max_images`)."""
+MAX_BYTES = 1 << 30
+"""Default size of the cache: 1 GiB of features (the tiny base's are 64 kB a picture; a CLIP ViT-L's ~1 MB in
+bfloat16, on its GPU). Beyond it the least recently used pictures go (and are computed again if they come back)."""
 
-    def __init__(self, tower: nn.Module, max_images: int = 4096):
-        self.tower, self.max_images = tower, max_images
+
+class TowerCache:
+    """Per-image `last_hidden_state` of a frozen tower, keyed by its pixel values' bytes (LRU, `max_bytes`)."""
+
+    def __init__(self, tower: nn.Module, max_bytes: int = MAX_BYTES):
+        self.tower, self.max_bytes, self.bytes = tower, max_bytes, 0
         self.forward = tower.forward  # the tower's own bound forward, called for the pictures not yet seen
         self.features: OrderedDict[bytes, torch.Tensor] = OrderedDict()
         self.output_cls = None  # the tower's output type, seen at its first call
@@ -63,16 +68,19 @@ class TowerCache:
                 and not any(isinstance(v, torch.Tensor) for v in kwargs.values()) and tower_is_frozen(self.tower))
 
     @staticmethod
-    def key(image: torch.Tensor) -> bytes:
+    def key(image: torch.Tensor, context: str = "") -> bytes:
+        """The picture's identity: its values' bytes, shape and dtype, and `context` (device, autocast)."""
         t = image.detach().contiguous().cpu()
         h = hashlib.blake2b(t.reshape(-1).view(torch.uint8).numpy().tobytes(), digest_size=16)
-        h.update(f"{tuple(t.shape)} {t.dtype}".encode())
+        h.update(f"{tuple(t.shape)} {t.dtype} {context}".encode())
         return h.digest()
 
     def __call__(self, pixel_values=None, *args, **kwargs):
         if args or not self.usable(pixel_values, kwargs):
             return self.forward(pixel_values, *args, **kwargs)
-        keys = [self.key(img) for img in pixel_values]
+        device = pixel_values.device.type  # features computed under another autocast are other numbers
+        context = f"{device} {torch.is_autocast_enabled(device)} {torch.get_autocast_dtype(device)}"
+        keys = [self.key(img, context) for img in pixel_values]
         found = {k: self.features[k] for k in dict.fromkeys(keys) if k in self.features}
         missing = [k for k in dict.fromkeys(keys) if k not in found]
         if missing:
@@ -82,11 +90,14 @@ class TowerCache:
             self.output_cls = type(out) if hasattr(out, "last_hidden_state") else tuple
             hidden = out.last_hidden_state if self.output_cls is not tuple else out[0]
             found.update((k, h.detach().clone()) for k, h in zip(missing, hidden))
-        for k in found:  # this call's pictures become the most recent; the least recent go beyond max_images
+        for k in missing:
             self.features[k] = found[k]
+            self.bytes += found[k].nelement() * found[k].element_size()
+        for k in found:  # this call's pictures become the most recent; the least recent go beyond max_bytes
             self.features.move_to_end(k)
-        while len(self.features) > self.max_images:
-            self.features.popitem(last=False)
+        while self.bytes > self.max_bytes and self.features:
+            old = self.features.popitem(last=False)[1]
+            self.bytes -= old.nelement() * old.element_size()
         self.misses += len(missing)
         self.hits += len(keys) - len(missing)
         stacked = torch.stack([found[k] for k in keys])
@@ -94,12 +105,12 @@ class TowerCache:
         return (stacked,) if self.output_cls is tuple else self.output_cls(last_hidden_state=stacked)
 
 
-def cache_frozen_tower(model: nn.Module, max_images: int = 4096) -> TowerCache | None:
+def cache_frozen_tower(model: nn.Module, max_bytes: int = MAX_BYTES) -> TowerCache | None:
     """Route the model's vision tower through a `TowerCache` (used at each call only while the tower is frozen);
     returns it, or None for a model without a vision tower."""
     tower = find_tower(model)
     if tower is None:
         return None
-    cache = TowerCache(tower, max_images)
+    cache = TowerCache(tower, max_bytes)
     tower.forward = cache
     return cache
