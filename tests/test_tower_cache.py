@@ -160,3 +160,34 @@ def test_features_computed_under_autocast_are_kept_apart_from_full_precision_one
     assert (cache.misses, cache.hits) == (2, 0)
     assert plain.dtype == torch.float32 and half.dtype == torch.bfloat16
     assert model.model.vision_tower(pics).last_hidden_state.dtype == torch.float32 and cache.hits == 1
+
+
+def test_degusta_train_with_the_cache_learns_exactly_what_it_learns_without(tmp_path, monkeypatch):
+    import csv
+
+    from finetune_support import dataset
+
+    from degusta_learn.finetune import tower_cache
+    from degusta_learn.finetune.pretrain.export import save_random_base
+    from degusta_learn.methods import run_train
+    from degusta_learn.scene import save_dataset
+
+    base = save_random_base(tmp_path / "base", BaseArchitecture(**{**ARCH, "text_layers": 2, "text_heads": 4}))
+    data = save_dataset(dataset(), tmp_path / "data")
+    losses, adapters, caches = {}, {}, []
+    monkeypatch.setattr(tower_cache, "cache_frozen_tower",
+                        lambda model, f=tower_cache.cache_frozen_tower: caches.append(f(model)) or caches[-1])
+    for cached in (True, False):
+        run = run_train("configs/finetune_tiny_base_cpu.yaml", [
+            f"dataset={data}", f"model.name={base}", f"model.cache_tower={cached}", f"trainer.run_dir={tmp_path}",
+            f"trainer.run_name=cache_{cached}", "trainer.max_steps=3", "trainer.progress_bar=false",
+            "trainer.log_every_n_steps=1", "data.val_episodes=0", "data.max_train_episodes=6", "data.batch_size=2",
+            "data.contexts=[2]", "trainer.precision=32-true", "trainer.monitor=null"])
+        with open(next((run / "csv").glob("version_*/metrics.csv"))) as f:
+            losses[cached] = [float(r["train/loss"]) for r in csv.DictReader(f) if r.get("train/loss")]
+        from safetensors.torch import load_file
+
+        adapters[cached] = load_file(run / "adapter" / "adapter_model.safetensors")
+    assert len(caches) == 1 and caches[0].hits > 0 and caches[0].misses > 0  # the object sheet and tables recur
+    assert len(losses[True]) == 3 and losses[True] == losses[False]
+    assert all(torch.equal(adapters[True][k], adapters[False][k]) for k in adapters[False])
