@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from degusta_learn.finetune.module import freeze_batch_norms
 from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
 from degusta_learn.finetune.tower_cache import cache_frozen_tower, find_tower, tower_is_frozen
 
@@ -16,11 +17,8 @@ def _frozen_base():
     model, _ = build_base(BaseArchitecture(**ARCH), seed=3)
     model.train()
     tower = find_tower(model)
-    for p in tower.parameters():
-        p.requires_grad_(False)
-    for m in tower.modules():
-        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-            m.eval()
+    tower.requires_grad_(False)
+    freeze_batch_norms(tower)  # as fine-tuning keeps a frozen tower's BatchNorms
     return model, tower
 
 

@@ -81,12 +81,14 @@ class TowerCache:
         device = pixel_values.device.type  # features computed under another autocast are other numbers
         context = f"{device} {torch.is_autocast_enabled(device)} {torch.get_autocast_dtype(device)}"
         keys = [self.key(img, context) for img in pixel_values]
-        found = {k: self.features[k] for k in dict.fromkeys(keys) if k in self.features}
-        missing = [k for k in dict.fromkeys(keys) if k not in found]
+        first_row: dict[bytes, int] = {}  # the distinct pictures, in order, with the first row of each
+        for row, k in enumerate(keys):
+            first_row.setdefault(k, row)
+        found = {k: self.features[k] for k in first_row if k in self.features}
+        missing = [k for k in first_row if k not in found]
         if missing:
-            rows = [keys.index(k) for k in missing]
             with torch.no_grad():
-                out = self.forward(pixel_values[rows], **kwargs)
+                out = self.forward(pixel_values[[first_row[k] for k in missing]], **kwargs)
             self.output_cls = type(out) if hasattr(out, "last_hidden_state") else tuple
             hidden = out.last_hidden_state if self.output_cls is not tuple else out[0]
             found.update((k, h.detach().clone()) for k, h in zip(missing, hidden))
