@@ -15,6 +15,8 @@ Usage:
     python benchmarks/bench_vlm.py --reuse                 # re-score: keep finished runs and predictions
     python benchmarks/bench_vlm.py --modes lora --set trainer.max_steps=261 --out runs/bench_vlm_3ep
         # --set: fine-tuning overrides (here three epochs instead of one)
+    python benchmarks/bench_vlm.py --modes lora --reuse --predict-set n=5 --predict-set temperature=1.0 --out OUT
+        # --predict-set: the fine-tuned row's predict overrides (here 5 sampled answers aggregated)
 """
 
 from __future__ import annotations
@@ -80,6 +82,8 @@ def main() -> None:
     ap.add_argument("--plot", default="docs/images/vlm_learning_curve.png")
     ap.add_argument("--val-every", type=int, default=29,
                     help="fine-tuning steps between validations (the learning curve's points; 29: three an epoch)")
+    ap.add_argument("--predict-set", dest="predict_overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="a predict config override for the fine-tuned rows, e.g. n=5 (repeatable)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="a fine-tuning config override for both runs, e.g. trainer.max_steps=261 (repeatable)")
     args = ap.parse_args()
@@ -123,9 +127,11 @@ def main() -> None:
                       + extra + args.overrides)
             seconds[f"fine-tune {mode}"] = time.time() - t0
         if mode == "lora":
-            hf(name, "configs/predict_hf_base_finetuned.yaml", [f"backend.adapter={run_dir / 'adapter'}"])
+            hf(name, "configs/predict_hf_base_finetuned.yaml",
+               [f"backend.adapter={run_dir / 'adapter'}"] + args.predict_overrides)
         else:
-            hf(name, "configs/predict_hf_base_zeroshot.yaml", [f"backend.model={run_dir / 'model'}"])
+            hf(name, "configs/predict_hf_base_zeroshot.yaml",
+               [f"backend.model={run_dir / 'model'}"] + args.predict_overrides)
             preds[name] = read_predictions(out / "predictions" / f"{name}.jsonl", ds.catalog)
     for name in BASELINES:
         spec = get_method(name)

@@ -12,7 +12,7 @@ from degusta_learn.optim import OptimConfig
 from degusta_learn.render.grid import Grid
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.trainer import TrainerConfig
-from degusta_learn.vlm.prompt_options import COMPOSE, GROUPS
+from degusta_learn.vlm.prompt_options import COMPOSE, GROUPS, PromptOptions
 
 
 @dataclass
@@ -85,6 +85,10 @@ class DataConfig:
     """Image groups sent: objects (GoMO sheets), context (final_state_k), target (initial_state_1)."""
     compose: list[str] = field(default_factory=list)
     """Groups drawn as ONE labelled canvas to save image tokens: objects, context, all."""
+    context_answers: bool = False
+    """After each context image, its arrangement written in the answer format (ids, cells, directions): the
+    model is told which objects the person used instead of reading them from the pictures. Not the paper's
+    prompt (vlm/prompt_options.py); saved with the adapter, so predict prompts the same way."""
     max_length: int = bounded(2048, 16, 262_144)
     """Token budget of one example (prompt + images + answer); longer examples are an error, never truncated."""
     batch_size: int = bounded(4, 1, 4096)
@@ -109,6 +113,11 @@ class DataConfig:
             raise DegustaError(f"data.include / data.compose: unknown group {bad[0]!r}")
         if self.batch_size < 1 or self.max_length < 16:
             raise DegustaError("data.batch_size / data.max_length: expected >= 1 / >= 16")
+
+    def prompt_options(self) -> PromptOptions:
+        """How this config's prompts are cut down (and how predict re-applies them from the adapter's record)."""
+        return PromptOptions(include=list(self.include), compose=list(self.compose),
+                             context_answers=self.context_answers)
 
 
 @dataclass

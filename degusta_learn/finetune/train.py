@@ -27,10 +27,9 @@ from degusta_learn.methods import TrainerSpec
 def build_examples(cfg: FinetuneConfig, ds, grid):
     """(train LiftedExamples, val LiftedExamples) from the dataset's seeded participant split."""
     from degusta_learn.finetune.data import LiftedExamples
-    from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.scene import make_episodes
 
-    opts = PromptOptions(include=list(cfg.data.include), compose=list(cfg.data.compose))
+    opts = cfg.data.prompt_options()
     train = [e for k in cfg.data.contexts for e in make_episodes(ds, k, "train", cfg.seed)]
     if cfg.data.max_train_episodes is not None and len(train) > cfg.data.max_train_episodes:
         train = random.Random(cfg.seed).sample(train, cfg.data.max_train_episodes)
@@ -107,7 +106,6 @@ def write_meta(out: Path, cfg: FinetuneConfig, processor) -> None:
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset, participants_in
     from degusta_learn.scene.dataset import dataset_identity
-    from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.vlm.record import FinetuneRecord, TrainingData, write_record
 
     ds = load_dataset(cfg.dataset)
@@ -118,7 +116,7 @@ def write_meta(out: Path, cfg: FinetuneConfig, processor) -> None:
     write_record(out, FinetuneRecord(
         base_model=cfg.model.name, method=cfg.method, mode=cfg.lora.mode,
         grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
-        prompt=PromptOptions(include=list(cfg.data.include), compose=list(cfg.data.compose)),
+        prompt=cfg.data.prompt_options(),
         image_size=cfg.model.image_size, render_size=cfg.data.render_size,
         processor_size=dict(getattr(processor.image_processor, "size", {}) or {}), trained_on=trained_on))
 

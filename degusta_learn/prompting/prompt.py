@@ -82,6 +82,10 @@ class Prompt:
     parts: list[str | ImagePart]
     episode: str | None = None
     """The episode id (the replay backend looks answers up by it; not part of what the model sees)."""
+    context_answers: dict[str, str] = field(default_factory=dict)
+    """Each context image's arrangement in the answer format, by image name (`final_state_1.jpg` -> answer
+    text). Not part of what the model sees unless a small model's `PromptOptions.context_answers` puts it in
+    the text (`vlm.prompt_options.adapt_prompt`)."""
 
     @property
     def text(self) -> str:
@@ -158,7 +162,7 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
         parts.append("These are the objects I have, as JSON; each object's object_reference_id is its "
                      "\"id\" and its object_type is its \"class\":\n" + oal_text(catalog))
     # 2. The context arrangements and their placement order.
-    names = []
+    names, answers = [], {}
     for k, trial in enumerate(episode.context, start=1):
         arr = ds.arrangement(episode.participant, trial)
         name = f"final_state_{k}.{ext}"
@@ -166,12 +170,21 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
         img = renderer.gma(arr.table, arr.placements, grid) if gridded else renderer.uma(arr.table, arr.placements)
         image(name, img)
         parts.append(order_text(arr, catalog, name))
+        answers[name] = context_answer(method, arr, catalog, grid)
     # 3. The empty target table.
     target_name = f"initial_state_1.{ext}"
     image(target_name, renderer.table(target.table, grid=grid if gridded else None))
     # 4. The task.
     parts.append(task_text(method, names, target_name, grid, catalog.types, structured=structured))
-    return Prompt(method=method, parts=parts, episode=episode.id)
+    return Prompt(method=method, parts=parts, episode=episode.id, context_answers=answers)
+
+
+def context_answer(method: str, arrangement, catalog, grid: Grid | None) -> str:
+    """`arrangement` written as `method`'s answer (cells and directions, or positions and rotations, with ids)."""
+    from degusta_learn.prompting.answers import answer_items, answer_kind, format_answer
+
+    kind = answer_kind(method)
+    return format_answer(answer_items(list(arrangement.placements), catalog, kind, grid), kind)
 
 
 def task_text(method: str, context_names: list[str], target_name: str, grid: Grid | None,

@@ -8,6 +8,10 @@ Used wherever a local VLM is prompted: fine-tuning examples (`finetune/data.py`,
   one canvas, to save image tokens. Composed GoMO sheets are redrawn as one legible object sheet
   (`render.compose.objects_canvas`: id digits 8 px tall on a 448 px canvas); other groups are tiled
   (`render.compose.tile_canvas`).
+- `context_answers`: after each context image's placement-order line, that arrangement written in the answer
+  format (`Prompt.context_answers`: types, ids, cells, directions). Not the paper's prompt: the model is told
+  which objects the person used instead of reading their ids from the pictures (a recorded history a robot
+  has; what the structured baselines `copy_nearest` and `consensus` are given). Off by default.
 
 Example:
     opts = PromptOptions(include=["context", "target"], compose=["context"])
@@ -31,6 +35,7 @@ class PromptOptions:
 
     include: list[str] = field(default_factory=lambda: list(GROUPS))
     compose: list[str] = field(default_factory=list)
+    context_answers: bool = False
 
     def __post_init__(self):
         for g in self.include:
@@ -41,7 +46,7 @@ class PromptOptions:
                 raise DegustaError(f"data.compose: unknown group {g!r} (expected some of {list(COMPOSE)})")
 
     def to_json(self) -> dict:
-        return {"include": list(self.include), "compose": list(self.compose)}
+        return {"include": list(self.include), "compose": list(self.compose), "context_answers": self.context_answers}
 
 
 def image_group(name: str) -> str:
@@ -58,6 +63,8 @@ def adapt_prompt(prompt, options: PromptOptions):
     from degusta_learn.prompting import ImagePart, Prompt
 
     parts = list(prompt.parts)
+    if options.context_answers and "context" in options.include:
+        parts = _with_context_answers(parts, prompt.context_answers)
     keep: list = []
     for i, part in enumerate(parts):
         nxt = parts[i + 1] if i + 1 < len(parts) else None
@@ -77,7 +84,31 @@ def adapt_prompt(prompt, options: PromptOptions):
         for g in GROUPS:
             if g in options.compose:
                 keep = _compose(keep, {g}, g)
-    return Prompt(method=prompt.method, parts=keep, episode=prompt.episode)
+    return Prompt(method=prompt.method, parts=keep, episode=prompt.episode, context_answers=prompt.context_answers)
+
+
+def _with_context_answers(parts: list, answers: dict[str, str]) -> list:
+    """`parts` with each context image's answer text after its placement-order line (`build_prompt` puts that
+    line right after the image); unchanged if the lines are already there."""
+    from degusta_learn.prompting import ImagePart
+
+    lines = {name: f"The objects in {name}, written as an answer: {text}" for name, text in answers.items()}
+    if set(lines.values()) & {p for p in parts if isinstance(p, str)}:
+        return parts  # already there (a prompt adapted before)
+    out: list = []
+    pending = None
+    for part in parts:
+        if pending is not None and not (isinstance(part, str) and part.startswith(f"Placement order in {pending}:")):
+            break
+        out.append(part)
+        if pending is not None:
+            out.append(lines[pending])
+            pending = None
+        if isinstance(part, ImagePart) and part.name in answers:
+            pending = part.name
+    if pending is not None:
+        raise DegustaError(f"prompt: context image {pending} is not followed by its placement-order line")
+    return out
 
 
 def _compose(parts: list, groups: set[str], label: str) -> list:

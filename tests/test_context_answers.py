@@ -1,0 +1,118 @@
+"""`PromptOptions.context_answers`: each context arrangement written in the answer format after its image."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+from conftest import make_small_dataset
+
+from degusta_learn.config import load_config
+from degusta_learn.errors import DegustaError
+from degusta_learn.finetune.config import FinetuneConfig
+from degusta_learn.finetune.data import LiftedExamples
+from degusta_learn.prompting import ImagePart, build_prompt, parse_answer
+from degusta_learn.render.grid import Grid
+from degusta_learn.render.lifting import Renderer
+from degusta_learn.scene import make_episodes
+from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
+from degusta_learn.vlm.record import FINETUNE_FILE, FinetuneRecord, read_record
+
+LINE = "The objects in {}, written as an answer: "
+
+
+@pytest.fixture(scope="module")
+def setting():
+    ds = make_small_dataset(n_participants=4)
+    episode = make_episodes(ds, 2, "test", 0)[0]
+    return ds, episode, Renderer.for_dataset(ds, size=64)
+
+
+def _answer_lines(prompt) -> dict[str, str]:
+    out = {}
+    for part in prompt.parts:
+        if isinstance(part, str) and part.startswith("The objects in "):
+            name, answer = part[len("The objects in "):].split(", written as an answer: ")
+            out[name] = answer
+    return out
+
+
+@pytest.mark.parametrize("method", ["mogma", "logma", "mouma", "louma"])
+def test_each_context_is_written_as_the_answer_that_places_its_objects(setting, method):
+    ds, episode, renderer = setting
+    prompt = build_prompt(method, ds, episode, renderer, Grid(8, 8))
+    assert list(prompt.context_answers) == [f"final_state_{k}.jpg" for k in (1, 2)]
+    assert not _answer_lines(prompt)  # recorded, not sent: the paper's prompt is unchanged
+    told = adapt_prompt(prompt, PromptOptions(context_answers=True))
+    lines = _answer_lines(told)
+    assert lines == prompt.context_answers
+    for k, trial in enumerate(episode.context, start=1):
+        name = f"final_state_{k}.jpg"
+        arr = ds.arrangement(episode.participant, trial)
+        items = parse_answer(lines[name], "grid" if method in ("mogma", "logma") else "unmarked", ds.catalog, Grid(8, 8))
+        assert [i.id for i in items] == [p.object for p in arr.placements]  # ids in placement order
+        assert [i.type for i in items] == [ds.catalog[p.object].type for p in arr.placements]
+        # the line comes right after the image's placement-order line
+        at = told.parts.index(LINE.format(name) + lines[name])
+        assert told.parts[at - 1].startswith(f"Placement order in {name}:")
+        assert isinstance(told.parts[at - 2], ImagePart) and told.parts[at - 2].name == name
+
+
+def test_off_by_default_and_left_out_with_the_context_images(setting):
+    ds, episode, renderer = setting
+    prompt = build_prompt("mogma", ds, episode, renderer, Grid(8, 8))
+    assert adapt_prompt(prompt, PromptOptions()).parts == prompt.parts
+    no_context = adapt_prompt(prompt, PromptOptions(include=["objects", "target"], context_answers=True))
+    assert not _answer_lines(no_context)
+
+
+def test_composed_canvases_keep_every_answer_line(setting):
+    ds, episode, renderer = setting
+    prompt = build_prompt("mogma", ds, episode, renderer, Grid(8, 8))
+    told = adapt_prompt(prompt, PromptOptions(compose=["objects", "context"], context_answers=True))
+    assert _answer_lines(told) == prompt.context_answers
+    assert [p.name for p in told.images] == ["objects.jpg", "context.jpg", "initial_state_1.jpg"]
+
+def test_adapting_an_adapted_prompt_adds_nothing(setting):
+    ds, episode, renderer = setting
+    opts = PromptOptions(context_answers=True)
+    once = adapt_prompt(build_prompt("mogma", ds, episode, renderer, Grid(8, 8)), opts)
+    assert adapt_prompt(once, opts).parts == once.parts
+
+
+def test_a_context_image_without_its_order_line_is_an_error(setting):
+    ds, episode, renderer = setting
+    prompt = build_prompt("mogma", ds, episode, renderer, Grid(8, 8))
+    cut = dataclasses.replace(prompt, parts=[p for p in prompt.parts if not (isinstance(p, str) and
+                                                                            p.startswith("Placement order in"))])
+    cut = dataclasses.replace(cut, parts=cut.parts[:cut.parts.index(cut.images[-1])])  # ends on an image
+    with pytest.raises(DegustaError, match="final_state_1.jpg is not followed by its placement-order line"):
+        adapt_prompt(cut, PromptOptions(context_answers=True))
+
+
+def test_the_finetune_config_key_reaches_the_examples_and_the_record(small_dataset_dir, tmp_path):
+    from types import SimpleNamespace
+
+    from degusta_learn.finetune.train import build_examples, write_meta
+    from degusta_learn.scene import load_dataset
+
+    cfg = load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "seed": 0, "data": {
+        "render_size": 64, "contexts": [2], "context_answers": True}})
+    ds = load_dataset(small_dataset_dir)
+    train, _ = build_examples(cfg, ds, Grid(8, 8))
+    assert isinstance(train, LiftedExamples) and train.options.context_answers
+    assert len(_answer_lines(train[0].prompt)) == 2
+    write_meta(tmp_path, cfg, SimpleNamespace(image_processor=SimpleNamespace(size={})))
+    record = read_record(tmp_path / FINETUNE_FILE)
+    assert isinstance(record, FinetuneRecord) and record.prompt.context_answers is True
+    # a record written before the option existed reads as the paper's prompt
+    data = json.loads((tmp_path / FINETUNE_FILE).read_text())
+    del data["prompt"]["context_answers"]
+    (tmp_path / FINETUNE_FILE).write_text(json.dumps(data))
+    assert read_record(tmp_path / FINETUNE_FILE).prompt.context_answers is False
+
+
+def test_a_config_value_that_is_not_a_boolean_names_the_key(small_dataset_dir):
+    with pytest.raises(DegustaError, match="context_answers"):
+        load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "data": {"context_answers": "often"}})
