@@ -191,4 +191,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from degusta_learn.errors import DegustaError
+
+    try:
+        main()
+    except DegustaError as e:  # a config or data mistake: one line, as `degusta` gives it
+        raise SystemExit(f"bench_vlm: {e}") from None
