@@ -50,7 +50,8 @@ def test_each_context_is_written_as_the_answer_that_places_its_objects(setting, 
     for k, trial in enumerate(episode.context, start=1):
         name = f"final_state_{k}.jpg"
         arr = ds.arrangement(episode.participant, trial)
-        items = parse_answer(lines[name], "grid" if method in ("mogma", "logma") else "unmarked", ds.catalog, Grid(8, 8))
+        kind = "grid" if method in ("mogma", "logma") else "unmarked"
+        items = parse_answer(lines[name], kind, ds.catalog, Grid(8, 8))
         assert [i.id for i in items] == [p.object for p in arr.placements]  # ids in placement order
         assert [i.type for i in items] == [ds.catalog[p.object].type for p in arr.placements]
         # the line comes right after the image's placement-order line
@@ -73,6 +74,7 @@ def test_composed_canvases_keep_every_answer_line(setting):
     told = adapt_prompt(prompt, PromptOptions(compose=["objects", "context"], context_answers=True))
     assert _answer_lines(told) == prompt.context_answers
     assert [p.name for p in told.images] == ["objects.jpg", "context.jpg", "initial_state_1.jpg"]
+
 
 def test_adapting_an_adapted_prompt_adds_nothing(setting):
     ds, episode, renderer = setting

@@ -46,7 +46,8 @@ class PromptOptions:
                 raise DegustaError(f"data.compose: unknown group {g!r} (expected some of {list(COMPOSE)})")
 
     def to_json(self) -> dict:
-        return {"include": list(self.include), "compose": list(self.compose), "context_answers": self.context_answers}
+        return {"include": list(self.include), "compose": list(self.compose),
+                "context_answers": self.context_answers}
 
 
 def image_group(name: str) -> str:
@@ -96,18 +97,14 @@ def _with_context_answers(parts: list, answers: dict[str, str]) -> list:
     if set(lines.values()) & {p for p in parts if isinstance(p, str)}:
         return parts  # already there (a prompt adapted before)
     out: list = []
-    pending = None
-    for part in parts:
-        if pending is not None and not (isinstance(part, str) and part.startswith(f"Placement order in {pending}:")):
-            break
+    for i, part in enumerate(parts):
         out.append(part)
-        if pending is not None:
-            out.append(lines[pending])
-            pending = None
         if isinstance(part, ImagePart) and part.name in answers:
-            pending = part.name
-    if pending is not None:
-        raise DegustaError(f"prompt: context image {pending} is not followed by its placement-order line")
+            after = parts[i + 1] if i + 1 < len(parts) else None
+            if not (isinstance(after, str) and after.startswith(f"Placement order in {part.name}:")):
+                raise DegustaError(f"prompt: context image {part.name} is not followed by its placement-order line")
+        elif i and isinstance(parts[i - 1], ImagePart) and parts[i - 1].name in answers:
+            out.append(lines[parts[i - 1].name])
     return out
 
 
