@@ -4,7 +4,9 @@ Scores `checkpoints/tiny_vlm_base` (or --model) on perception questions drawn fr
 trained or validated on: object-set F1 (type and id), exact cell set per named object, direction
 accuracy (plates left out: their direction cannot be seen), GoMO mark-id accuracy, cell IoU and the
 parse rate, overall and by the number of scenes in the prompt. Constrained decoding, greedy, one answer
-per question. Also plots the pretraining validation curve recorded in the model folder.
+per question. Apart from the perception scores, `--transcribe` questions (another seed) ask for one scene's list
+written in the prompt (`transcribe`: copying, not seeing): object F1 and how often the list has the written length.
+Also plots the pretraining validation curve recorded in the model folder.
 
 Usage:
     python benchmarks/bench_perception.py                               # 600 questions, ~10 CPU minutes
@@ -55,6 +57,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", default="checkpoints/tiny_vlm_base")
     ap.add_argument("--n", type=int, default=600, help="questions (>= 500 held-out images by default)")
+    ap.add_argument("--transcribe", type=int, default=100, help="transcribe questions, scored apart (0: none)")
     ap.add_argument("--seed", type=int, default=BENCH_SEED)
     ap.add_argument("--out", default="runs/bench_perception")
     ap.add_argument("--threads", type=int, default=2)
@@ -85,17 +88,24 @@ def main() -> None:
     grid = Grid(meta["grid"]["rows"], meta["grid"]["cols"])
     examples = PerceptionExamples(catalog, tables, grid, meta["render_size"], args.seed, args.n,
                                   TaskMix(lists=0.7, describe=0.1, gomo=0.2), block=1)
+    copies = PerceptionExamples(catalog, tables, grid, meta["render_size"], args.seed + 1, args.transcribe,
+                                TaskMix(lists=0, describe=0, gomo=0, transcribe=1), block=1)
     grammar = AnswerGrammar("grid", catalog, grid)
-    rows, t0 = [], time.time()
-    for i in range(len(examples)):
-        ex = examples[i]
+    t0 = time.time()
+
+    def answer(ex) -> dict:
         located = ex.meta["task"] != "gomo"
         text = generate_answers(model, processor, ex.prompt, n=1, temperature=0.0,
                                 max_new_tokens=320 if located else 8, constrained=located,
                                 grammar=grammar if located else None)[0].text
-        rows.append({**score_answer(ex, text, catalog, grid), "scenes": ex.meta.get("scenes", 1)})
+        return {**score_answer(ex, text, catalog, grid), "scenes": ex.meta.get("scenes", 1)}
+
+    rows = []
+    for i in range(len(examples)):
+        rows.append(answer(examples[i]))
         if (i + 1) % 100 == 0:
             print(f"{i + 1}/{len(examples)} questions, {time.time() - t0:.0f} s", flush=True)
+    copied = [answer(copies[i]) for i in range(len(copies))]
     scores = summarize(rows)
     by_scenes = {str(k): summarize([r for r in rows if r["task"] == "list" and r["scenes"] == k])
                  for k in (1, 2, 3, 4)}
@@ -104,6 +114,9 @@ def main() -> None:
               "seconds": round(time.time() - t0, 1), "scores": scores,
               "object_f1_by_scenes": {k: v["object_f1"] for k, v in by_scenes.items()},
               "cells_exact_by_scenes": {k: v["cells_exact"] for k, v in by_scenes.items()}}
+    if copied:
+        result["transcribe"] = {"n": len(copied), "object_f1": summarize(copied)["transcribe_f1"],
+                                "length_exact": sum(r["tp"] + r["fp"] == r["n_truth"] for r in copied) / len(copied)}
     out = Path(args.out)
     atomic_write_json(out / "perception.json", result)
     print(f"\n{len(rows)} questions about {n_images} held-out images ({result['seconds']:.0f} s):\n")
@@ -113,6 +126,9 @@ def main() -> None:
                                                           "cell_iou", "parse_rate")) + " |")
     print("\nobject-set F1 by scenes in the prompt:", json.dumps(
         {k: round(v, 3) for k, v in result["object_f1_by_scenes"].items()}))
+    if copied:
+        print(f"transcribe ({len(copied)} lists written in the prompt, copied): object F1 "
+              f"{result['transcribe']['object_f1']:.3f}, written length {result['transcribe']['length_exact']:.3f}")
     plot = plot_curve(meta.get("validation_curve") or [], Path(args.plot))
     if plot:
         print(f"training curve: {plot}")

@@ -133,6 +133,43 @@ def test_locate_answers_the_named_objects_of_the_named_scene_in_the_order_asked(
         TaskMix(locate_objects=0)
 
 
+def test_transcribe_copies_the_named_scenes_written_list_as_a_preference_prompt_writes_it():
+    from degusta_learn.prompting import Prompt
+    from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
+
+    ds = examples(n=24, block=1, mix=TaskMix(lists=0, describe=0, gomo=0, transcribe=1, scenes=[1, 1, 1, 1]))
+    for i in range(len(ds)):
+        ex = ds[i]
+        assert ex.meta["task"] == "transcribe" and len(ex.meta["cell_labels"]) == len(ex.prompt.images)
+        texts = [p for p in ex.prompt.parts if isinstance(p, str)]
+        name = ex.prompt.parts[-1].split("List every object in ")[1].split(" ")[0]
+        assert "in placement order" in ex.prompt.parts[-1] and ex.meta["order"] == "placement"
+        written = {t.split(",", 1)[0].removeprefix("The objects in "): t.split("written as an answer: ", 1)[1]
+                   for t in texts if t.startswith("The objects in final_state_")}
+        assert len(written) == ex.meta["scenes"] and written[name] == ex.answer  # the answer is the named line
+        for n, line in written.items():  # each line follows its scene's order line and lists that scene's types
+            at = texts.index(f"The objects in {n}, written as an answer: {line}")
+            assert texts[at - 1].startswith(f"Placement order in {n}:")
+            assert texts[at - 1].endswith(", ".join(it.type for it in parse_answer(line, "grid", CATALOG, GRID)) + ".")
+        labelled = ex.meta["cell_labels"][[p.name for p in ex.prompt.images].index(name)]
+        assert {oid for objects in labelled for oid, _ in objects} == {t["id"] for t in ex.meta["truth"]}
+        # exactly the sentence a preference prompt with data.context_answers gets (adding it again changes nothing)
+        again = adapt_prompt(Prompt("perception", ex.prompt.parts, context_answers={name: ex.answer}),
+                             PromptOptions(context_answers=True))
+        assert again.parts == ex.prompt.parts
+    scores = summarize([score_answer(ds[i], ds[i].answer, CATALOG, GRID) for i in range(len(ds))])
+    assert scores["transcribe_f1"] == 1.0 and scores["n_transcribe"] == len(ds) and np.isnan(scores["object_f1"])
+    # a mix without the task draws the examples it drew before the task existed (shapes recorded from that code)
+    before = [("locate", 2, False, False), ("locate", 1, True, False), ("locate", 1, False, True),
+              ("locate", 3, True, False), ("describe", 1, False, False), ("describe", 1, False, False),
+              ("list", 1, True, True), ("describe", 1, False, False), ("gomo", 1, False, False),
+              ("describe", 1, False, False), ("describe", 1, False, False), ("locate", 4, False, True),
+              ("list", 1, True, True), ("list", 1, False, True), ("describe", 1, False, False),
+              ("describe", 1, False, False)]
+    shipped = examples(mix=TaskMix(lists=0.2, describe=0.45, gomo=0.15, locate=0.2))
+    assert [shipped.shape_of(i) for i in range(0, 64, 4)] == before
+
+
 def test_describe_asks_several_objects_of_one_scene_each_answered_in_turn():
     ds = examples(n=12, block=1, mix=TaskMix(lists=0, describe=1, gomo=0, describe_questions=4))
     for i in range(len(ds)):

@@ -111,7 +111,7 @@ def _curriculum(t: dict) -> str:
     if not t.get("curriculum_steps"):
         return ""
     mix = t["curriculum_mix"]
-    asked = ", ".join(f"{mix[k]:g} {k}" for k in ("describe", "locate", "lists", "gomo") if mix.get(k))
+    asked = ", ".join(f"{mix[k]:g} {k}" for k in ("describe", "locate", "lists", "transcribe", "gomo") if mix.get(k))
     return f"; its first {t['curriculum_steps']} decoder steps asked one-scene questions only ({asked})"
 
 
@@ -176,6 +176,10 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
                   "| " + " | ".join(_fmt(bench["scores"].get(k)) for k in
                                    ("object_f1", "cells_exact", "direction", "mark_id", "cell_iou", "parse_rate")) + " |",
                   ""]
+        if bench.get("transcribe"):
+            c = bench["transcribe"]
+            lines += [f"Copying a list written in the prompt (not perception; {c['n']} *transcribe* questions): "
+                      f"object F1 {c['object_f1']:.2f}, the written length {c['length_exact']:.2f} of the time.", ""]
     if curve:
         lines += [f"Validation during training ({len(curve)} validations; last at step {last['step']}):", "",
                   "| step | object F1 | exact cells | direction | mark id | mean | tower: type / id within type |",

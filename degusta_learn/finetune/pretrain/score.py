@@ -10,6 +10,8 @@ Per answer (`score_answer`) and over many (`summarize`):
 - ``cell_iou``: the mean intersection-over-union of those cell sets (how close the misses are);
 - ``direction``: among the same named objects, the fraction with the right direction, plates left out
   (a round or square plate looks the same pointing N or S: its direction cannot be seen);
+- ``transcribe_f1``: the same F1 on `transcribe` answers (copying a scene's list written in the prompt; not
+  perception, so not in the headline);
 - ``mark_id``: the fraction of `gomo` answers that are exactly the marked id;
 - ``parse_rate``: the fraction of `list` / `describe` / `locate` answers `parse_answer` reads;
 - ``perception``: the mean of object_f1, cells_exact, direction and mark_id (what picks best.ckpt).
@@ -70,10 +72,15 @@ def summarize(rows: list[dict]) -> dict:
     def ratio(a: float, b: float) -> float:
         return a / b if b else math.nan
 
-    f1s = [ratio(2 * r["tp"], 2 * r["tp"] + r["fp"] + r["fn"]) if (r["tp"] + r["fp"] + r["fn"]) else 1.0
-           for r in lists]
+    def mean_f1(task_rows: list[dict]) -> float:
+        f1s = [ratio(2 * r["tp"], 2 * r["tp"] + r["fp"] + r["fn"]) if (r["tp"] + r["fp"] + r["fn"]) else 1.0
+               for r in task_rows]
+        return ratio(sum(f1s), len(f1s))
+
+    copies = [r for r in rows if r["task"] == "transcribe"]
     out = {
-        "object_f1": ratio(sum(f1s), len(f1s)),
+        "object_f1": mean_f1(lists),
+        "transcribe_f1": mean_f1(copies),
         "cells_exact": ratio(sum(r["cells_ok"] for r in located), named),
         "cells_exact_all": ratio(sum(r["cells_ok"] for r in located), sum(r["n_truth"] for r in located)),
         "cell_iou": ratio(sum(r["cell_iou"] for r in located), named),
@@ -82,6 +89,7 @@ def summarize(rows: list[dict]) -> dict:
         "parse_rate": ratio(sum(r["parsed"] for r in located), len(located)),
         "n_list": len(lists), "n_describe": sum(r["task"] == "describe" for r in rows),
         "n_locate": sum(r["task"] == "locate" for r in rows), "n_gomo": len(marks),
+        "n_transcribe": len(copies),
     }
     present = [out[k] for k in HEADLINE if not math.isnan(out[k])]
     out["perception"] = sum(present) / len(present) if present else math.nan

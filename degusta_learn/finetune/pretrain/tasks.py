@@ -19,6 +19,11 @@ prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
   in the order asked. Every object is a retrieval (find that id in that image, copy its cells and
   direction): many answers per rendered image, the skill the preference task needs to carry a context
   arrangement onto a new table.
+- ``transcribe``: the ``list`` prompt with each scene's arrangement also written in the answer format after its
+  placement-order line (the sentence `PromptOptions.context_answers` adds to a preference prompt), and the
+  ``list`` question in placement order about one of them: the answer is that scene's written list, copied.
+  Reading a list from the prompt and writing it out again, item by item to its end, is what a preference
+  prompt with the context tables written out asks of the decoder (docs/tiny_base.md, point 30).
 - ``gomo``: one GoMO sheet of a random subset of one type's objects in random order, so a position on
   the sheet says nothing about an id without looking; "Which object_reference_id is marked on the
   object in row 2, column 3 ...?" and the answer is the integer.
@@ -47,7 +52,7 @@ from degusta_learn.finetune.data import Example
 from degusta_learn.finetune.pretrain.scenes import random_scene
 from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
-TASKS = ("list", "describe", "gomo", "locate")
+TASKS = ("list", "describe", "gomo", "locate", "transcribe")  # new tasks go last: earlier draws stay
 GRID_FORMAT = ("[{'type': object_type, 'id': object_reference_id, 'position': [grid_cell_ids], "
                "'cardinal_direction': direction}]")
 _DIRECTIONS_TEXT = "[N, NE, E, SE, S, SW, W, NW]"
@@ -65,6 +70,9 @@ class TaskMix:
     """Weight of `gomo` questions (the id marked at a row and column of a GoMO sheet)."""
     locate: float = 0.0
     """Weight of `locate` questions (several objects of one named scene by type and id, answered in that order)."""
+    transcribe: float = 0.0
+    """Weight of `transcribe` questions (a `list` prompt with every scene also written as an answer; the asked
+    scene's written list is the answer)."""
     locate_objects: int = 8
     """The most objects one `locate` question asks about (all of the scene's when it has fewer)."""
     describe_questions: int = 1
@@ -82,7 +90,7 @@ class TaskMix:
     """Probability that a `list` prompt ends with an empty grid-marked table (initial_state_1.jpg)."""
 
     def __post_init__(self):
-        weights = [self.lists, self.describe, self.gomo, self.locate]
+        weights = [self.lists, self.describe, self.gomo, self.locate, self.transcribe]
         if any(w < 0 for w in weights) or sum(weights) <= 0:
             raise DegustaError("data.mix: task weights must be >= 0 and not all 0")
         if len(self.scenes) != 4 or any(w < 0 for w in self.scenes) or sum(self.scenes) <= 0:
@@ -96,7 +104,7 @@ class TaskMix:
                 raise DegustaError(f"data.mix.{key}: expected a probability in [0, 1], got {getattr(self, key)}")
 
     def probabilities(self) -> np.ndarray:
-        w = np.array([self.lists, self.describe, self.gomo, self.locate], dtype=float)
+        w = np.array([self.lists, self.describe, self.gomo, self.locate, self.transcribe], dtype=float)
         return w / w.sum()
 
 
@@ -164,7 +172,7 @@ class PerceptionExamples:
         task = TASKS[int(rng.choice(len(TASKS), p=m.probabilities()))]
         k = 1 + int(rng.choice(4, p=np.asarray(m.scenes, float) / sum(m.scenes)))
         sheet, empty = bool(rng.random() < m.objects_sheet), bool(rng.random() < m.empty_table)
-        if task not in ("list", "locate"):
+        if task not in ("list", "locate", "transcribe"):
             return task, 1, False, False
         return task, k, sheet, empty
 
@@ -173,7 +181,8 @@ class PerceptionExamples:
             raise IndexError(i)
         task, k, sheet, empty = self.shape_of(i)
         rng = np.random.default_rng([self.seed, 2, i])
-        build = {"list": self._list, "describe": self._describe, "gomo": self._gomo, "locate": self._locate}[task]
+        build = {"list": self._list, "describe": self._describe, "gomo": self._gomo, "locate": self._locate,
+                 "transcribe": self._transcribe}[task]
         parts, answer, meta = build(rng, self.mix_at(i), k, sheet, empty)
         from degusta_learn.prompting import Prompt
 
@@ -255,6 +264,20 @@ class PerceptionExamples:
         parts.append(locate_question(name, [(self.catalog[p.object].type, p.object) for p in chosen]))
         answer, truth = self._truth(chosen)
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels, "asked_image": int(sheet) + asked}
+
+    def _transcribe(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
+        from degusta_learn.prompting import Prompt
+
+        parts, labels, scenes = self._scenes(rng, k, sheet, empty)
+        written = {f"final_state_{j}.jpg": self._truth(scene.placements)[0] for j, scene in enumerate(scenes, 1)}
+        parts = adapt_prompt(Prompt("perception", parts, context_answers=written),
+                             PromptOptions(context_answers=True)).parts
+        asked = int(rng.integers(k))
+        name = f"final_state_{asked + 1}.jpg"
+        parts.append(list_question(name, self.types))
+        answer, truth = self._truth(scenes[asked].placements)
+        return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels,
+                               "asked_image": int(sheet) + asked, "order": "placement"}
 
     def _object_sheets(self) -> list:
         from degusta_learn.prompting import ImagePart, Prompt
