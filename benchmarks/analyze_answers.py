@@ -28,13 +28,16 @@ import numpy as np
 
 
 def free_placements(prediction, kind: str, catalog, grid):
-    """The placements of the free answer (the kept one where no free answer was recorded); None if unreadable."""
+    """The placements of the free answer (the kept one where the grammar changed nothing, so none was recorded);
+    None if unreadable."""
     from degusta_learn.prompting.aggregate import aggregate
     from degusta_learn.prompting.answers import AnswerParseError, read_answer
 
     d = prediction.diagnostics or {}
-    free = (d.get("decoding") or {}).get("free_responses")
-    texts = free if free else d.get("responses")
+    kept = d.get("responses") or []
+    free = (d.get("decoding") or {}).get("free_responses") or []
+    # a null free answer: the grammar changed nothing, the free answer is the kept one
+    texts = [f if f is not None else k for f, k in zip(free, kept)] if free else kept
     if not texts:
         return None if prediction.failed else list(prediction.placements)
     try:

@@ -32,6 +32,13 @@ def test_copying_a_context_table_and_a_free_answer_that_repeats(analyze, small_d
     assert r["pred_ids_in_context"] == 1.0  # every id copied from a context table
     assert r["kept"]["n_pred"] > 1 and r["free"]["n_pred"] == 1.0  # the repeats dropped, not placed
     assert r["kept"]["object_accuracy"] > r["free"]["object_accuracy"]
+    # a null free answer (the grammar changed nothing) is the kept answer, not an unreadable one
+    same = [Prediction(p.episode, p.participant, p.target, p.method, p.placements, diagnostics={
+        "responses": p.diagnostics["responses"], "decoding": {"free_responses": [None]}}) for p in preds]
+    r = analyze.analyze(ds, {e.id: e for e in episodes}, same, grid)
+    for key in ("n_pred", "object_accuracy", "count_error"):  # (positions: the answer's cells, not the plan's x, y)
+        assert r["free"][key] == r["kept"][key]
+    assert r["free"]["n_pred"] > 1
 
     write_episodes(tmp_path / "episodes.jsonl", episodes)
     (tmp_path / "run" / "predictions").mkdir(parents=True)

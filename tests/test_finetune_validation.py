@@ -97,14 +97,14 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
              format_answer(truth[1:], "grid")]
     seen = {}
 
-    def scripted(model, processor, prompts, n, temperature, max_new_tokens, constrained, grammar, seeds, stop_on_repeat):
-        seen.update(n=n, temperature=temperature, seeds=seeds, stop_on_repeat=stop_on_repeat)
+    def scripted(model, processor, prompts, n, temperature, max_new_tokens, constrained, grammar, seeds, on_repeat):
+        seen.update(n=n, temperature=temperature, seeds=seeds, on_repeat=on_repeat)
         return [[Completion(t, 10, 10, {}) for t in texts] for _ in prompts]
 
     monkeypatch.setattr("degusta_learn.vlm.generate.generate_batch", scripted)
     module = _module(tiny, n=4)
     row = module.score_batch([ex], True, [7])[0]
-    assert seen == {"n": 4, "temperature": 1.0, "seeds": [module.cfg.seed + 7], "stop_on_repeat": True}
+    assert seen == {"n": 4, "temperature": 1.0, "seeds": [module.cfg.seed + 7], "on_repeat": "skip"}
 
     cfg = ZeroShotConfig(dataset=str(save_dataset(ds, tmp_path / "data")), out=str(tmp_path / "p.jsonl"),
                          method="mogma", n=4, cache="off")

@@ -9,6 +9,7 @@ import gc
 import pytest
 from finetune_support import GRID, dataset, examples, load
 
+from degusta_learn.errors import DegustaError
 from degusta_learn.prompting import AnswerParseError, answer_items, format_answer, parse_answer
 from degusta_learn.vlm.constrain import token_trie
 from degusta_learn.vlm.generate import answer_token_budget, generate_answers
@@ -132,7 +133,7 @@ def test_the_grammar_knows_when_an_id_names_an_object_again():
 @pytest.mark.parametrize("stop", [True, False])
 def test_a_model_that_names_an_object_again_ends_its_answer_there(tiny, stop):
     """Forced onto the next unused id, a model that has finished its list would go on inventing objects (the
-    shipped base: 16-19 items where its free answer had 5); with stop_on_repeat the answer ends instead."""
+    shipped base: 16-19 items where its free answer had 5); with stop_on_repeat (on_repeat: stop) it ends instead."""
     import torch
 
     from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
@@ -154,8 +155,44 @@ def test_a_model_that_names_an_object_again_ends_its_answer_there(tiny, stop):
         assert picked not in stops and tok.decode([picked]).isdigit()
 
 
+def test_skip_lets_the_model_name_an_object_again_and_the_reader_drops_that_item(tiny):
+    """on_repeat: skip (the default): the grammar allows the repeated id, so the model's own pick stands (nothing
+    refused, nothing stopped), the answer goes on, and the answer reader keeps each object once."""
+    import torch
+
+    from degusta_learn.prompting.answers import read_answer
+    from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
+
+    model, processor, _, grammar = tiny
+    tok = processor.tokenizer
+    stops = [tok.eos_token_id if tok.eos_token_id is not None else 0]
+    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
+    head = f"[{item}, {{'type': 'cup', 'id': "
+    skipping = grammar.allowing_repeats()
+    assert skipping.feed(skipping.start(), head + "16") is not None and grammar.feed(grammar.start(), head + "16") is None
+    assert skipping is grammar.allowing_repeats() and skipping.allowing_repeats() is skipping and grammar.distinct
+    scores = torch.zeros(1, len(tok))
+    sixteen = tok.encode("16", add_special_tokens=False)[0]
+    scores[0, sixteen] = 10.0  # the model's pick: id 16 again
+    sampler = Sampler(0.0, [0], stops, GrammarLogitsProcessor(skipping, tok, 0, stops, max_new_tokens=400))
+    assert int(sampler(torch.tensor([tok.encode(head, add_special_tokens=False)]), scores).argmax()) == sixteen
+    assert sampler.grammar_changed == [False] and sampler.repeat_stop == [False]
+    other = "{'type': 'plate', 'id': 76, 'position': ['D4'], 'cardinal_direction': 'N'}"
+    text = f"[{item}, {item}, {other}]"
+    assert skipping.is_complete(skipping.feed(skipping.start(), text))
+    answer = read_answer(text, "grid", dataset().catalog, GRID)
+    assert [it.id for it in answer.items] == [16, 76] and len(answer.item_errors) == 1  # the repeat, dropped, said
+    with pytest.raises(DegustaError, match="on_repeat"):
+        generate_answers(model, processor, tiny[2], constrained=True, grammar=grammar, on_repeat="again")
+    from degusta_learn.config import from_dict
+    from degusta_learn.prompting.backends.hf import HFConfig
+
+    with pytest.raises(DegustaError, match="'backend.stop_on_repeat' is now 'on_repeat"):  # the key before
+        from_dict(HFConfig, {"name": "hf", "model": "m", "stop_on_repeat": True}, "predict.yaml", "backend.")
+
+
 def test_answers_that_stop_on_a_repeat_keep_the_items_before_it(tiny, one_torch_thread, monkeypatch):
-    """Coupled sampling: the same seeds with and without stop_on_repeat write the same items up to the repeat;
+    """Coupled sampling: the same seeds with on_repeat "stop" and "next" write the same items up to the repeat;
     a stopped answer parses and is those items, the rest is its continuation. (Random weights almost never
     pick a used id, so here every refused pick in an id slot after the first item counts as a repeat; what
     is a repeat is tested above.)"""
@@ -170,8 +207,8 @@ def test_answers_that_stop_on_a_repeat_keep_the_items_before_it(tiny, one_torch_
     model, processor, prompt, grammar = tiny
     catalog = dataset().catalog
     kw = dict(n=6, temperature=1.0, max_new_tokens=300, constrained=True, grammar=grammar, seed=3)
-    stopped = generate_answers(model, processor, prompt, stop_on_repeat=True, **kw)
-    going = generate_answers(model, processor, prompt, stop_on_repeat=False, **kw)
+    stopped = generate_answers(model, processor, prompt, on_repeat="stop", **kw)
+    going = generate_answers(model, processor, prompt, on_repeat="next", **kw)
     assert any(c.decoding["repeat_stop"] for c in stopped)
     for s, g in zip(stopped, going):
         a, b = parse_answer(s.text, "grid", catalog, GRID), parse_answer(g.text, "grid", catalog, GRID)

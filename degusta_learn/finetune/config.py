@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from degusta_learn.config import bounded, check_choices, seed_field
 from degusta_learn.errors import DegustaError
@@ -128,9 +128,10 @@ class EvalConfig:
     """Constrain validation answers to the answer grammar (parse rate 100% by construction)."""
     report_unconstrained: bool = False
     """Also generate unconstrained and log val/parse_rate_unconstrained (twice the validation time)."""
-    stop_on_repeat: bool = True
-    """Constrained: an answer ends where the model names an object it already placed (as the hf backend's
-    `backend.stop_on_repeat`, so validation scores what predict writes)."""
+    on_repeat: Literal["skip", "stop", "next"] = "skip"
+    """Constrained: what an item naming an object the answer already placed does (as the hf backend's
+    `backend.on_repeat`, so validation scores what predict writes): skip, stop or next."""
+    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop or next; true was stop)"}
     max_new_tokens: int = bounded(384, 1, 32_768)
     """Most new tokens per generated answer."""
     batch_size: int | None = bounded(None, 1, 4096)

@@ -138,7 +138,7 @@ class FinetuneModule(L.LightningModule):
         answers = generate_batch(self.model, self.processor, [ex.prompt for ex in examples], n=e.n,
                                  temperature=e.sampling_temperature, max_new_tokens=e.max_new_tokens,
                                  constrained=constrained, grammar=grammar,
-                                 seeds=[self.cfg.seed + i for i in indices], stop_on_repeat=e.stop_on_repeat)
+                                 seeds=[self.cfg.seed + i for i in indices], on_repeat=e.on_repeat)
         return [self.score_answers(ex, [c.text for c in completions]) for ex, completions in zip(examples, answers)]
 
     def score_answers(self, ex, texts: list[str]) -> dict:

@@ -17,8 +17,12 @@ What decoding did is recorded in each `Completion.decoding`:
   noise streams, so it is exactly what `constrained=False` with the same seed writes. An answer the
   grammar did not change is its own free answer (`free_text` null), so the free parse rate costs only
   the answers the grammar changed;
-  With `stop_on_repeat` (the default) a constrained answer ends where the model named an object again
-  (`repeat_stop`, see `constrain.Sampler`): it keeps the items before the repeat;
+  An item naming an object the answer already placed is handled by `on_repeat` (constrained only):
+  "skip" (the default) lets the model write it (`AnswerGrammar.allowing_repeats`) and go on, and the answer
+  reader drops it, so the answer is the free answer's objects, each once; "stop" ends the answer there
+  (`repeat_stop`, see `constrain.Sampler`), keeping the items before it; "next" lets the grammar force the
+  next-best unused id (a small model then invents objects until the budget runs out; docs/tiny_base.md,
+  points 18 and 30);
 - free: `constrained: false`, `cut` (the answer ran out of `max_new_tokens` before its end-of-turn).
 
 `answer_token_budget` derives `max_new_tokens` from a dataset's ground-truth answers and the tokenizer
@@ -44,6 +48,8 @@ from degusta_learn.vlm.inputs import ChatFormat, encode_prompt, prompt_messages
 BUDGET_MARGIN = 0.1
 """`answer_token_budget` leaves this fraction above the longest ground-truth answer (another tokenization
 of the same text, a longer answer than any target)."""
+ON_REPEAT = ("skip", "stop", "next")
+"""What constrained decoding does with an item naming an object again (module docstring)."""
 
 
 def chat_format(model, processor) -> ChatFormat:
@@ -63,7 +69,7 @@ def _row_seeds(seed: int | None, rows: int) -> list[int]:
 
 def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 0.0, max_new_tokens: int = 256,
                      constrained: bool = False, grammar=None, seed: int | None = None,
-                     free_pass: bool = False, stop_on_repeat: bool = True) -> list:
+                     free_pass: bool = False, on_repeat: str = "skip") -> list:
     """Sample `n` answers to `prompt`.
 
     Args:
@@ -78,13 +84,14 @@ def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 
         seed: seed of the answers' noise streams (reproducible samples; None: from torch's generator).
         free_pass: constrained only: also generate, without the grammar, every answer the grammar changed
             (`decoding.free_text`; see the module docstring).
-        stop_on_repeat: constrained only: end the answer where the model names an object again (module docstring).
+        on_repeat: constrained only: an item naming an object again is written and dropped by the reader ("skip"),
+            ends the answer ("stop") or is forced onto the next unused id ("next"); module docstring.
 
     Returns:
         n `Completion`s (text without special tokens, prompt and answer token counts, `decoding`).
     """
     return generate_batch(model, processor, [prompt], n, temperature, max_new_tokens, constrained, grammar, [seed],
-                          free_pass, stop_on_repeat)[0]
+                          free_pass, on_repeat)[0]
 
 
 def encode_prompts(processor, fmt: ChatFormat, prompts: list):
@@ -105,7 +112,7 @@ def encode_prompts(processor, fmt: ChatFormat, prompts: list):
 
 def generate_batch(model, processor, prompts: list, n: int = 1, temperature: float = 0.0, max_new_tokens: int = 256,
                    constrained: bool = False, grammar=None, seeds: list[int | None] | None = None,
-                   free_pass: bool = False, stop_on_repeat: bool = True) -> list[list]:
+                   free_pass: bool = False, on_repeat: str = "skip") -> list[list]:
     """`generate_answers` for several prompts in ONE `generate` call (left padding): `n` answers per prompt.
 
     Every answer keeps its own noise stream (`seeds[i]` gives prompt i's answers the streams
@@ -125,6 +132,10 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
 
     if constrained and grammar is None:
         raise DegustaError("backend.constrained: constrained decoding needs the answer grammar (catalog and grid)")
+    if on_repeat not in ON_REPEAT:
+        raise DegustaError(f"on_repeat: expected one of {list(ON_REPEAT)}, got {on_repeat!r}")
+    if constrained and on_repeat == "skip":
+        grammar = grammar.allowing_repeats()
     seeds = [None] * len(prompts) if seeds is None else list(seeds)
     if len(seeds) != len(prompts):
         raise DegustaError(f"generate: {len(prompts)} prompts but {len(seeds)} seeds")
@@ -143,7 +154,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
         per_prompt = len(row_seeds) // len(batch)
         proc = (GrammarLogitsProcessor(grammar, tok, prompt_len, fmt.stop_ids, max_new_tokens)
                 if with_grammar else None)
-        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc, stop_on_repeat=stop_on_repeat)
+        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc, stop_on_repeat=on_repeat == "stop")
         # The sampler picks each token and hands `generate` a one-hot distribution: nothing may reshape it.
         kwargs = dict(max_new_tokens=max_new_tokens, eos_token_id=fmt.stop_ids, do_sample=True, temperature=1.0,
                       top_k=0, top_p=1.0, use_cache=True, num_return_sequences=per_prompt,

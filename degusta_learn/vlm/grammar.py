@@ -6,7 +6,8 @@ whitespace), restricted to what can be right:
     grid:      [{'type': 'plate', 'id': 17, 'position': ['D4', 'D5'], 'cardinal_direction': 'N'}, ...]
     unmarked:  [{'type': 'plate', 'id': 17, 'position': [0.52, 0.6], 'rotation': 90}, ...]
 
-types from the catalog, ids of *that* type not placed yet (an object goes down once), cells of the grid
+types from the catalog, ids of *that* type not placed yet (an object goes down once; `allowing_repeats()`
+lifts this, for decoding that lets the model name an object again and the reader drop it), cells of the grid
 as the targets list them (`Grid.encode`): distinct, in row-major order (A1, B1, ..., A2, ...), and at
 most as many as an object of that type can cover anywhere on the grid (`max_cells_of`, from the catalog's
 footprints by `render.grid.max_cells`: 8 x 8 grid: plate 9, knife 7, fork 6, spoon 6, cup 4), the eight
@@ -27,6 +28,7 @@ Example:
 
 from __future__ import annotations
 
+import copy
 import re
 
 from degusta_learn.errors import DegustaError
@@ -57,8 +59,11 @@ _MAX_WS = 2
 class AnswerGrammar:
     """Character-level automaton of valid answers for one catalog and grid."""
 
-    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int | None = None):
-        """`max_cells` caps every type's cell count further (None: each type's footprint bound only)."""
+    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int | None = None,
+                 distinct: bool = True):
+        """`max_cells` caps every type's cell count further (None: each type's footprint bound only).
+        `distinct`: an id may be placed once (false: an item may name an object again, and the reader drops it:
+        `allowing_repeats`)."""
         if kind not in _ITEMS:
             raise DegustaError(f"answer kind: expected one of {list(_ITEMS)}, got {kind!r}")
         self.kind, self.parts = kind, _ITEMS[kind]
@@ -79,8 +84,20 @@ class AnswerGrammar:
                 self.max_cells_of = {t: min(m, max_cells) for t, m in self.max_cells_of.items()}
             self.max_cells = max(self.max_cells_of.values(), default=0)
             """The most cells any object may list (the largest per-type bound)."""
+        self.distinct = distinct
         self._prefixes: dict = {}
         self._cell_prefixes: dict[int, set[str]] = {}
+        self._repeating: AnswerGrammar | None = None
+
+    def allowing_repeats(self) -> AnswerGrammar:
+        """This grammar with `distinct` off: an item may name an already placed object (decoding's `on_repeat:
+        skip`, where the answer reader drops such an item and the list goes on). Shares the caches."""
+        if not self.distinct:
+            return self
+        if self._repeating is None:
+            self._repeating = copy.copy(self)
+            self._repeating.distinct = False
+        return self._repeating
 
     # ------------------------------------------------------------------ slots
     def _options(self, name: str, type_: str | None) -> list[str]:
@@ -148,7 +165,7 @@ class AnswerGrammar:
                 return ("next", 0, 0, "", None, (), n)
             return ("item", part + 1, 0, "", type_, cells, n)
         if kind == "slot":
-            exclude = n if value == "id" else self._exhausted(n) if value == "type" else ()
+            exclude = () if not self.distinct else n if value == "id" else self._exhausted(n) if value == "type" else ()
             if self._prefix_ok(value, buf + ch, type_, exclude):
                 return ("item", part, 0, buf + ch, type_, cells, n)
             if ch == self.parts[part + 1][1][0] and self._complete(value, buf, type_, exclude):

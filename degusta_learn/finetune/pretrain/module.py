@@ -220,7 +220,7 @@ class PerceptionModule(FinetuneModule):
                                 max_new_tokens=self.cfg.eval.max_new_tokens if located else GOMO_TOKENS,
                                 constrained=located and self.cfg.eval.constrained,
                                 grammar=self.grammar() if located else None,
-                                stop_on_repeat=self.cfg.eval.stop_on_repeat)[0].text
+                                on_repeat=self.cfg.eval.on_repeat)[0].text
 
     def validation_step(self, batch, batch_idx):
         from degusta_learn.finetune.pretrain.score import score_answer

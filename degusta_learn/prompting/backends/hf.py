@@ -26,16 +26,17 @@ import functools
 
 import threading
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import Backend, BackendConfig
 
 
-DECODING_VERSION = 3
+DECODING_VERSION = 4
 """Bump when `vlm.generate`'s sampling or `vlm.grammar` changes what a seeded answer is (2: per-answer noise
 streams, sorted cells and per-type cell limits in the grammar; 3: a constrained answer ends where the model
-names an object again, `stop_on_repeat`)."""
+names an object again, `stop_on_repeat`; 4: `on_repeat`, by default an item naming an object again is written
+and dropped and the answer goes on)."""
 
 
 @dataclass
@@ -50,9 +51,10 @@ class HFConfig(BackendConfig):
     """A peft LoRA adapter folder (from `degusta train`)."""
     constrained: bool = False
     """Constrain decoding to the answer grammar."""
-    stop_on_repeat: bool = True
-    """Constrained: end an answer where the model names an object it already placed (forced onto another id, a
-    small model goes on inventing objects; `vlm.constrain.Sampler`); false: the grammar's next-best id instead."""
+    on_repeat: Literal["skip", "stop", "next"] = "skip"
+    """Constrained: an item naming an object the answer already placed is written and dropped by the answer
+    reader, and the answer goes on (skip); the answer ends there (stop); the grammar forces the next-best unused
+    id (next: a small model then invents objects until the budget runs out). `vlm.generate`; docs/prompting.md."""
     device: str = "auto"
     """cpu, cuda, auto."""
     dtype: Literal["auto", "float32", "bfloat16", "float16"] = "auto"
@@ -60,7 +62,8 @@ class HFConfig(BackendConfig):
     image_size: int | None = None
     """The processor's image size budget (unset: the model's default)."""
 
-    answer_keys = ("adapter", "constrained", "stop_on_repeat", "dtype", "image_size")
+    answer_keys = ("adapter", "constrained", "on_repeat", "dtype", "image_size")
+    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop or next; true was stop)"}
 
     def answer_fields(self) -> dict:
         """The base keys plus the decoding version: answers cached before a change of the sampler or the
@@ -92,7 +95,7 @@ class HFBackend(Backend):
 
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None,
-                 stop_on_repeat: bool = True):
+                 on_repeat: str = "skip"):
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
         from degusta_learn.vlm.load import load_vlm
         from degusta_learn.vlm.record import FinetuneRecord, locate_record, read_record
@@ -113,7 +116,7 @@ class HFBackend(Backend):
         self.options = self.record.prompt if self.record else None
         self.trained_method = self.record.method if isinstance(self.record, FinetuneRecord) else None
         self.constrained, self.grid, self.catalog = constrained, grid, catalog
-        self.stop_on_repeat = stop_on_repeat
+        self.on_repeat = on_repeat
         if constrained and catalog is None:
             raise DegustaError("backend.constrained: constrained decoding needs the dataset catalog")
         self._grammars: dict = {}
@@ -123,7 +126,7 @@ class HFBackend(Backend):
     def from_config(cls, cfg, grid=None, catalog=None) -> HFBackend:
         return cls(cfg.model, adapter=cfg.adapter, constrained=cfg.constrained, device=cfg.device,
                    dtype=cfg.dtype, image_size=cfg.image_size, grid=grid, catalog=catalog,
-                   stop_on_repeat=cfg.stop_on_repeat)
+                   on_repeat=cfg.on_repeat)
 
     def grammar(self, method: str):
         from degusta_learn.vlm.grammar import AnswerGrammar
@@ -168,7 +171,7 @@ class HFBackend(Backend):
             return generate_answers(self.vlm, self.processor, prompt, n=n, temperature=temperature,
                                     max_new_tokens=max_tokens, constrained=self.constrained, grammar=grammar,
                                     seed=seed, free_pass=True,  # the free answer wherever the grammar changed one
-                                    stop_on_repeat=self.stop_on_repeat)
+                                    on_repeat=self.on_repeat)
 
 
 @functools.lru_cache(maxsize=16)
