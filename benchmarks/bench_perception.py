@@ -59,6 +59,9 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=600, help="questions (>= 500 held-out images by default)")
     ap.add_argument("--transcribe", type=int, default=100, help="transcribe questions, scored apart (0: none)")
     ap.add_argument("--seed", type=int, default=BENCH_SEED)
+    ap.add_argument("--on-repeat", default="stop", choices=("stop", "skip", "next"),
+                    help="a list item naming an object again (vlm/generate.py): stop, the decoding every recorded "
+                         "perception score used (predict's default is skip)")
     ap.add_argument("--out", default="runs/bench_perception")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--write-card", action="store_true", help="write perception.json into the model folder "
@@ -97,7 +100,7 @@ def main() -> None:
         located = ex.meta["task"] != "gomo"
         text = generate_answers(model, processor, ex.prompt, n=1, temperature=0.0,
                                 max_new_tokens=320 if located else 8, constrained=located,
-                                grammar=grammar if located else None)[0].text
+                                grammar=grammar if located else None, on_repeat=args.on_repeat)[0].text
         return {**score_answer(ex, text, catalog, grid), "scenes": ex.meta.get("scenes", 1)}
 
     rows = []

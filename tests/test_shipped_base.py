@@ -49,3 +49,18 @@ def test_the_shipped_base_loads_offline_and_answers_one_perception_question(monk
         text = generate_answers(model, processor, ex.prompt, n=1, temperature=0.0, max_new_tokens=160,
                                 constrained=True, grammar=AnswerGrammar("grid", catalog, grid))[0].text
     assert score_answer(ex, text, catalog, grid)["parsed"], text
+
+
+def test_the_card_reports_the_transcribe_score_when_the_benchmark_measured_it(tmp_path):
+    """bench_perception.py's transcribe questions (copying, not perception) get their own line in the card."""
+    from degusta_learn.finetune.pretrain.export import BASE_META, PERCEPTION, write_card
+
+    for name in (BASE_META, PERCEPTION):
+        (tmp_path / name).write_text((BASE_DIR / name).read_text())
+    card = write_card(tmp_path).read_text()
+    assert "transcribe" not in card  # the shipped benchmark did not ask them
+    scores = json.loads((tmp_path / PERCEPTION).read_text())
+    scores["transcribe"] = {"n": 100, "object_f1": 0.34, "length_exact": 0.12}
+    (tmp_path / PERCEPTION).write_text(json.dumps(scores))
+    card = write_card(tmp_path).read_text()
+    assert "100 *transcribe* questions): object F1 0.34, the written length 0.12 of the time" in card
