@@ -149,7 +149,8 @@ def failure_summary(predictions) -> str:
     fine-tuned models) failed samples and dropped items, each with its rate; for a local model, the answers
     the token budget closed early and, with the grammar, how many would parse without it.
 
-    Example: "9 episodes, 1 failed (11.1%); samples: 3 of 45 failed (6.7%); items: 2 of 120 dropped (1.7%)";
+    Example: "9 episodes, 1 failed (11.1%); samples: 3 of 45 failed (6.7%); items: 2 of 120 dropped (1.7%)"
+    (with "; 2 of them named an object again" inside the parenthesis where they did: `on_repeat: skip`);
     constrained: "...; decoded inside the answer grammar: 2 of 45 answers closed early by the token budget
     (4.4%); without the grammar 31 of 45 would parse (68.9%; the grammar changed 20; 12 of their 150 items
     dropped, 8.0%)".
@@ -165,7 +166,9 @@ def failure_summary(predictions) -> str:
     if any("n_items" in d for d in diags):
         items = sum(_count(d.get("n_items")) for d in diags)
         dropped = sum(_count(d.get("n_item_errors")) for d in diags)
-        line += f"; items: {dropped} of {items} dropped ({_pct(dropped, items)})"
+        repeats = sum(_count(d.get("n_item_repeats")) for d in diags)
+        line += f"; items: {dropped} of {items} dropped ({_pct(dropped, items)}"
+        line += f"; {repeats} of them named an object again)" if repeats else ")"
     decs = [d["decoding"] for d in diags if isinstance(d.get("decoding"), dict) and d["decoding"]]
     if decs:
         known = sum(_count(d.get("known")) for d in decs)

@@ -70,7 +70,13 @@ MAX_ENUM_VALUES = 600
 """Most enum values a schema lists (OpenAI strict allows 1,000 in all); past it, cells become a pattern
 and ids a [min, max] range (the item policy still drops what the looser schema lets through)."""
 _WRAPPER = re.compile(r"\{\s*['\"](" + STRUCTURED_KEY + r")['\"]\s*:", re.I)
+REPEATED = "was already placed by an earlier item"
+"""The reason an item naming an object an earlier item placed is dropped (`is_repeat` tells it apart)."""
 
+
+def is_repeat(reason: str) -> bool:
+    """Whether an item error `reason` is a repeated object (decoding's `on_repeat: skip` writes them on purpose)."""
+    return REPEATED in reason
 
 @dataclass
 class AnswerItem:
@@ -304,7 +310,7 @@ def _read(text: Any, kind: str, catalog: Catalog, grid: Grid | None) -> Answer:
         try:
             item = _item(raw, i, kind, catalog, grid)
             if item.id in seen:
-                raise AnswerParseError(f"item {i}: id {item.id} was already placed by an earlier item")
+                raise AnswerParseError(f"item {i}: id {item.id} {REPEATED}")
         except AnswerParseError as e:
             errors.append(_clip(str(e)))
             continue

@@ -41,7 +41,7 @@ from degusta_learn.fileio import atomic_write_json, read_json, refuse_overwritin
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.render.grid import Grid
 from degusta_learn.prompting.aggregate import aggregate, decoding_diagnostics
-from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, read_answer
+from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, is_repeat, read_answer
 from degusta_learn.prompting.backends.base import (
     BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact, redact_json,
 )
@@ -309,7 +309,8 @@ class ZeroShotRun:
         diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": self.cfg.n,
                 "cached": cached, "responses": [s.text if s else None for s in samples],
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
-                "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors, **agg}
+                "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors,
+                "n_item_repeats": sum(is_repeat(e["reason"]) for e in item_errors), **agg}
         decoding = decoding_diagnostics(samples, self.kind, self.ds.catalog, self.grid)  # local models only
         if decoding:
             diag["decoding"] = {"max_new_tokens": self.cfg.backend.max_tokens, **decoding}
