@@ -78,6 +78,7 @@ def is_repeat(reason: str) -> bool:
     """Whether an item error `reason` is a repeated object (decoding's `on_repeat: skip` writes them on purpose)."""
     return REPEATED in reason
 
+
 @dataclass
 class AnswerItem:
     """One step of a model's task plan (grid answers fill cells/direction, unmarked ones position/rotation)."""
