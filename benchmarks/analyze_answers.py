@@ -8,7 +8,7 @@ episodes, beside the paper's object accuracy and the set-aware score:
 - **type recall**: the share of ground-truth objects whose type the answer has (types as multisets), so an
   answer can be right about *what kind* of objects a person sets while naming the wrong ones;
 - **repeat stops**: answers the constrained decoder ended where the model named an object again
-  (`vlm/constrain.py`, `stop_on_repeat`);
+  (`vlm/constrain.py`, decoding `on_repeat: stop`; with skip, the default, none);
 - the same scores for the **free** answers (the unconstrained decoding the backend records where the grammar
   changed an answer; elsewhere the two are the same), read by the toolkit's parser, which drops an item that
   names an object again: do the constrained answers lose objects the model would have placed?

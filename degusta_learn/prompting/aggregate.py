@@ -103,7 +103,7 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
     Keys: `constrained` (decoded inside the answer grammar: a "+ grammar" row), `known` (answers that say),
     `forced_closes` (answers the token budget closed early, constrained; or cut off before their end,
     free), and for constrained answers `grammar_changed` (answers free decoding would have written
-    otherwise), `repeat_stops` (answers that ended where the model named an object again: `stop_on_repeat`),
+    otherwise), `repeat_stops` (answers that ended where the model named an object again: `on_repeat: stop`),
     `free_known` / `free_parsed` (answers whose free version is known / parses: what the same model would
     score without the grammar, comparable with free-text parse rates), `free_items` / `free_item_errors`
     (items read from the free answers that parse / of those dropped by the item policy) and `free_responses`

@@ -193,7 +193,7 @@ class AnswerGrammar:
     def repeats(self, state, text: str) -> bool:
         """Whether `text`, read from `state`, names again an object an earlier item placed: the id slot's number
         ends (or can only end) on an id already in the answer. The grammar refuses such text; a sampler may
-        take it as the model's sign that the list is over (`constrain.Sampler`, `stop_on_repeat`)."""
+        take it as the model's sign that the list is over (`constrain.Sampler`, `on_repeat: stop`)."""
         if state is None or state[0] != "item" or self.parts[state[1]] != ("slot", "id"):
             return False
         digits = re.match(r"\d*", text).group()
