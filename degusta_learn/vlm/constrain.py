@@ -23,8 +23,8 @@ refused the free pick. So the sampler records, per sequence,
 - `forced_close`: in closing mode, the budget refused the token the grammar alone would have allowed (the
   token budget closed the answer early: fewer cells or objects than the model was writing);
 
-- `repeat_stop` (with `stop_on_repeat`, decoding's `on_repeat: stop`): the free pick named again an object an earlier item had placed
-  (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
+- `repeat_stop` (with `stop_on_repeat`, decoding's `on_repeat: stop`): the free pick named again an object an
+  earlier item had placed (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
   over; forced onto the next unused id it would go on inventing objects until the token budget runs out
   (measured: 16-19 items where the free answer had 5, docs/tiny_base.md point 18). So the sequence stops
   there and `generate` keeps the items before the repeat (the answer ends after its last complete item).

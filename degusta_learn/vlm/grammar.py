@@ -165,7 +165,9 @@ class AnswerGrammar:
                 return ("next", 0, 0, "", None, (), n)
             return ("item", part + 1, 0, "", type_, cells, n)
         if kind == "slot":
-            exclude = () if not self.distinct else n if value == "id" else self._exhausted(n) if value == "type" else ()
+            exclude = ()  # ids placed (an object goes down once), types all of whose objects are placed
+            if self.distinct:
+                exclude = n if value == "id" else self._exhausted(n) if value == "type" else ()
             if self._prefix_ok(value, buf + ch, type_, exclude):
                 return ("item", part, 0, buf + ch, type_, cells, n)
             if ch == self.parts[part + 1][1][0] and self._complete(value, buf, type_, exclude):

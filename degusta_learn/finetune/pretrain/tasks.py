@@ -269,13 +269,13 @@ class PerceptionExamples:
         from degusta_learn.prompting import Prompt
 
         parts, labels, scenes = self._scenes(rng, k, sheet, empty)
-        written = {f"final_state_{j}.jpg": self._truth(scene.placements)[0] for j, scene in enumerate(scenes, 1)}
+        truths = [self._truth(scene.placements) for scene in scenes]  # (answer text, truth items) per scene
+        written = {f"final_state_{j}.jpg": text for j, (text, _) in enumerate(truths, start=1)}
         parts = adapt_prompt(Prompt("perception", parts, context_answers=written),
                              PromptOptions(context_answers=True)).parts
         asked = int(rng.integers(k))
-        name = f"final_state_{asked + 1}.jpg"
-        parts.append(list_question(name, self.types))
-        answer, truth = self._truth(scenes[asked].placements)
+        parts.append(list_question(f"final_state_{asked + 1}.jpg", self.types))
+        answer, truth = truths[asked]
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels,
                                "asked_image": int(sheet) + asked, "order": "placement"}
 
