@@ -30,7 +30,10 @@ def test_decoding_diagnostics_count_closes_and_free_parses():
                constrained(True, None, repeat=True), None]
     d = decoding_diagnostics(samples, "grid", cat, GRID)
     assert d["constrained"] and d["known"] == 4 and d["forced_closes"] == 1 and d["grammar_changed"] == 3
-    assert d["repeat_stops"] == 1
+    assert d["repeat_stops"] == 1 and "substitutions" not in d
+    swapped = Completion(GOOD, 10, 20, {**constrained(True).decoding, "substituted": [[1, 3, 4], [2, 3, None]]})
+    sd = decoding_diagnostics([swapped, swapped, constrained(False)], "grid", cat, GRID)
+    assert sd["substitutions"] == 2 and sd["substituted"] == [[[1, 3, 4], [2, 3, None]]] * 2 + [None]
     # unchanged: its own free answer (parses); changed with a free text: parsed; changed without: unknown
     assert (d["free_known"], d["free_parsed"]) == (3, 2)
     assert (d["free_items"], d["free_item_errors"]) == (2, 0)  # one item in each free answer that parses
@@ -57,6 +60,8 @@ def test_summary_line_labels_and_answer_table():
     assert "3 of 12 answers closed early by the token budget (25.0%);" in line and "named an object again" not in line
     line = failure_summary([_prediction(ep, {**dec, "repeat_stops": 2}) for ep in eps])
     assert "(25.0%), 6 ended where the model named an object again;" in line
+    line = failure_summary([_prediction(ep, {**dec, "substitutions": 2}) for ep in eps])
+    assert "(25.0%), 6 items naming an object again given another id;" in line
     assert "without the grammar 3 of 12 would parse (25.0%; the grammar changed 9; 3 of their 15 items dropped" in line
     items = [Prediction(p.episode, p.participant, p.target, p.method, p.placements, False,
                         {**p.diagnostics, "n_items": 10, "n_item_errors": 3, "n_item_repeats": 2}) for p in preds]

@@ -5,6 +5,7 @@ that cannot hand one tokenizer's trie to another."""
 from __future__ import annotations
 
 import gc
+import re
 
 import pytest
 from finetune_support import GRID, dataset, examples, load
@@ -128,12 +129,16 @@ def test_the_grammar_knows_when_an_id_names_an_object_again():
     assert not g.repeats(again, "17") and not g.repeats(again, "1")  # "1" may become 17: nothing repeated yet
     assert not g.repeats(g.feed(g.start(), "[{'type': 'cup', 'id': "), "16")  # nothing placed before
     assert not g.repeats(g.feed(g.start(), f"[{item}, {{'type': '"), "cup")  # the type slot is not an id
+    # a token that carries the literal's space before the number (" 16" after "'id':", GPT-2-style BPE)
+    colon = g.feed(g.start(), f"[{item}, {{'type': 'cup', 'id':")
+    assert g.repeats(colon, " 16") and g.repeats(colon, " 16,") and not g.repeats(colon, " 17")
+    assert g.id_named(colon, " 17, ") == "17" and g.id_named(colon, " 1") is None and g.id_named(colon, " ") is None
 
 
 @pytest.mark.parametrize("stop", [True, False])
 def test_a_model_that_names_an_object_again_ends_its_answer_there(tiny, stop):
     """Forced onto the next unused id, a model that has finished its list would go on inventing objects (the
-    shipped base: 16-19 items where its free answer had 5); with stop_on_repeat (on_repeat: stop) it ends instead."""
+    shipped base: 16-19 items where its free answer had 5); with on_repeat "stop" it ends instead."""
     import torch
 
     from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
@@ -146,7 +151,7 @@ def test_a_model_that_names_an_object_again_ends_its_answer_there(tiny, stop):
     scores = torch.zeros(1, len(tok))
     scores[0, tok.encode("16", add_special_tokens=False)[0]] = 10.0  # the model's pick: id 16 again
     proc = GrammarLogitsProcessor(grammar, tok, 0, stops, max_new_tokens=400)
-    sampler = Sampler(0.0, [0], stops, proc, stop_on_repeat=stop)
+    sampler = Sampler(0.0, [0], stops, proc, on_repeat="stop" if stop else "next")
     picked = int(sampler(torch.tensor([prefix]), scores).argmax())
     assert sampler.grammar_changed == [True] and sampler.repeat_stop == [stop]
     if stop:
@@ -216,3 +221,106 @@ def test_answers_that_stop_on_a_repeat_keep_the_items_before_it(tiny, one_torch_
             assert 0 < len(a) < len(b) and a == b[:len(a)] and s.text.endswith("'}]")  # whole items, closed
         else:
             assert s.text == g.text
+
+
+def test_substitute_gives_a_repeated_item_the_models_best_unused_id(tiny):
+    """on_repeat: substitute: the model's pick (id 16 again) stands while decoding, and the sampler ranks the
+    cup ids not yet placed by the model's scores there: the best (17) first, 16 never."""
+    import torch
+
+    from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
+
+    model, processor, _, grammar = tiny
+    tok = processor.tokenizer
+    stops = [tok.eos_token_id if tok.eos_token_id is not None else 0]
+    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
+    head = tok.encode(f"[{item}, {{'type': 'cup', 'id': ", add_special_tokens=False)
+    scores = torch.zeros(1, len(tok))
+    ids = {n: tok.encode(n, add_special_tokens=False) for n in ("16", "17", "18")}
+    assert all(len(v) == 1 for v in ids.values())  # the tiny tokenizer writes these ids as one token
+    scores[0, ids["16"][0]], scores[0, ids["17"][0]], scores[0, ids["18"][0]] = 10.0, 5.0, 4.0
+    skipping = grammar.allowing_repeats()
+    sampler = Sampler(0.0, [0], stops, GrammarLogitsProcessor(skipping, tok, 0, stops, max_new_tokens=400),
+                      on_repeat="substitute")
+    assert int(sampler(torch.tensor([head]), scores).argmax()) == ids["16"][0]
+    ranked = sampler.alternatives[0][0]
+    assert ranked[:2] == ["17", "18"] and "16" not in ranked
+    assert set(ranked) == {str(o.id) for o in dataset().catalog.of_type("cup")} - {"16"}
+    assert sampler.grammar_changed == [False] and sampler.repeat_stop == [False]
+    # an item that names a new object records nothing
+    fresh = tok.encode("[{'type': 'cup', 'id': ", add_special_tokens=False)
+    again = Sampler(0.0, [0], stops, GrammarLogitsProcessor(skipping, tok, 0, stops, max_new_tokens=400),
+                    on_repeat="substitute")
+    again(torch.tensor([fresh]), scores)
+    assert again.alternatives == [[]]
+
+
+def test_substitute_repeats_gives_each_repeated_item_an_id_no_item_names():
+    from degusta_learn.prompting.answers import read_answer
+    from degusta_learn.vlm.generate import substitute_repeats
+
+    def item(type_, id_, cell):
+        return f"{{'type': '{type_}', 'id': {id_}, 'position': ['{cell}'], 'cardinal_direction': 'N'}}"
+
+    text = "[" + ", ".join([item("cup", 16, "A1"), item("cup", 16, "B1"), item("cup", 17, "C1"),
+                            item("cup", 16, "D1")]) + "]"
+    # the first repeat's best (17) is named later by the model itself: its next best (18) instead;
+    # the second repeat has only 17 and 18 left, both taken: it keeps 16 and the reader drops it
+    out, swaps = substitute_repeats(text, [["17", "18", "19"], ["18", "17"]])
+    assert swaps == [[1, 16, 18], [3, 16, None]]
+    assert out == text.replace(item("cup", 16, "B1"), item("cup", 18, "B1"))
+    answer = read_answer(out, "grid", dataset().catalog, GRID)
+    assert [(it.id, it.cells) for it in answer.items] == [(16, ["A1"]), (18, ["B1"]), (17, ["C1"])]
+    assert len(answer.item_errors) == 1
+    assert substitute_repeats(text.replace("16, 'position': ['B1']", "20, 'position': ['B1']"), []) == (
+        text.replace("16, 'position': ['B1']", "20, 'position': ['B1']"), [[3, 16, None]])
+    no_repeat = "[" + item("cup", 16, "A1") + "]"
+    assert substitute_repeats(no_repeat, []) == (no_repeat, [])
+    # a loop (the same id at the same places) is the model writing one item again: dropped, not re-named
+    loop = "[" + ", ".join([item("cup", 16, "A1"), item("cup", 16, "A1"), item("cup", 16, "B1"),
+                            item("cup", 16, "B1")]) + "]"
+    out, swaps = substitute_repeats(loop, [["17"], ["17"], ["18"]])
+    assert swaps == [[1, 16, None], [2, 16, 17], [3, 16, None]]
+    assert [it.id for it in read_answer(out, "grid", dataset().catalog, GRID).items] == [16, 17]
+
+
+def test_substitute_decodes_the_models_own_tokens_and_rewrites_only_repeated_ids(tiny, one_torch_thread,
+                                                                                    monkeypatch):
+    """Coupled sampling: with the same seeds, "substitute" writes the "skip" answer token for token; only the
+    ids of items that name an object again change, to ids no other item names, and the model's own text is
+    kept as the answer's free answer. (Random weights seldom name an object twice, so the model is pushed
+    towards cups and cup 16.)"""
+    from degusta_learn.vlm.constrain import Sampler
+
+    model, processor, prompt, grammar = tiny
+    tok = processor.tokenizer
+    favourite = [tok.encode(w, add_special_tokens=False)[0] for w in ("cup", "16", " 16")]
+    call = Sampler.__call__
+
+    def biased(self, input_ids, scores):
+        scores = scores.clone()
+        scores[:, favourite] += 6.0
+        return call(self, input_ids, scores)
+
+    monkeypatch.setattr(Sampler, "__call__", biased)
+    catalog = dataset().catalog
+    kw = dict(n=6, temperature=1.0, max_new_tokens=300, constrained=True, grammar=grammar, seed=5, free_pass=True)
+    skipped = generate_answers(model, processor, prompt, on_repeat="skip", **kw)
+    swapped = generate_answers(model, processor, prompt, on_repeat="substitute", **kw)
+    n_swaps = 0
+    for a, b in zip(skipped, swapped):
+        ids_a = [int(x) for x in re.findall(r"'id': (\d+)", a.text)]
+        ids_b = [int(x) for x in re.findall(r"'id': (\d+)", b.text)]
+        swaps = b.decoding["substituted"]
+        assert len(ids_a) == len(ids_b) and [s[0] for s in swaps] == [
+            i for i, x in enumerate(ids_a) if x in ids_a[:i]]
+        for i, (x, y) in enumerate(zip(ids_a, ids_b)):
+            given = next((s[2] for s in swaps if s[0] == i), x)
+            assert y == (x if given is None else given)
+        if any(s[2] is not None for s in swaps):
+            n_swaps += 1
+            assert b.decoding["grammar_changed"] and b.decoding["free_text"] == (a.decoding["free_text"] or a.text)
+            assert len(set(ids_b)) > len(set(ids_a))
+        assert re.sub(r"'id': \d+", "", a.text) == re.sub(r"'id': \d+", "", b.text)
+        parse_answer(b.text, "grid", catalog, GRID) if len(set(ids_b)) == len(ids_b) else None
+    assert n_swaps > 0  # random weights name an object again often enough at temperature 1

@@ -128,9 +128,9 @@ class EvalConfig:
     """Constrain validation answers to the answer grammar (parse rate 100% by construction)."""
     report_unconstrained: bool = False
     """Also generate unconstrained and log val/parse_rate_unconstrained (twice the validation time)."""
-    on_repeat: Literal["skip", "stop", "next"] = "skip"
+    on_repeat: Literal["skip", "stop", "next", "substitute"] = "skip"
     """Constrained: what an item naming an object the answer already placed does (as the hf backend's
-    `backend.on_repeat`, so validation scores what predict writes): skip, stop or next."""
+    `backend.on_repeat`, so validation scores what predict writes): skip, stop, next or substitute."""
     RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop or next; true was stop)"}
     max_new_tokens: int = bounded(384, 1, 32_768)
     """Most new tokens per generated answer."""

@@ -104,6 +104,8 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
     `forced_closes` (answers the token budget closed early, constrained; or cut off before their end,
     free), and for constrained answers `grammar_changed` (answers free decoding would have written
     otherwise), `repeat_stops` (answers that ended where the model named an object again: `on_repeat: stop`),
+    `substitutions` and `substituted` (`on_repeat: substitute`: items that named an object again and were given
+    the model's best unused id instead; per answer, [item, named id, given id or null] for each repeated item),
     `free_known` / `free_parsed` (answers whose free version is known / parses: what the same model would
     score without the grammar, comparable with free-text parse rates), `free_items` / `free_item_errors`
     (items read from the free answers that parse / of those dropped by the item policy) and `free_responses`
@@ -123,6 +125,12 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
     out["forced_closes"] = sum(bool(d.get("forced_close")) for d in known)
     out["grammar_changed"] = sum(bool(d.get("grammar_changed")) for d in known)
     out["repeat_stops"] = sum(bool(d.get("repeat_stop")) for d in known)
+    if any("substituted" in d for d in known):
+        swaps = [d.get("substituted") if d is not None and isinstance(d.get("substituted"), list) else None
+                 for d in decs]
+        out["substitutions"] = sum(sum(1 for s in row if isinstance(s, list) and len(s) == 3 and s[2] is not None)
+                                   for row in swaps if row)
+        out["substituted"] = swaps
     free_known = free_parsed = free_items = free_dropped = 0
     for s, d in zip(samples, decs):
         if d is None:
@@ -181,9 +189,11 @@ def failure_summary(predictions) -> str:
             dropped = sum(_count(d.get("free_item_errors")) for d in decs)
             items_note = f"; {dropped} of their {items} items dropped, {_pct(dropped, items)}" if free else ""
             repeats = sum(_count(d.get("repeat_stops")) for d in decs)
+            swapped = sum(_count(d.get("substitutions")) for d in decs)
             line += (f"; decoded inside the answer grammar: {closed} of {known} answers closed early by the token "
                      f"budget ({_pct(closed, known)})"
                      + (f", {repeats} ended where the model named an object again" if repeats else "")
+                     + (f", {swapped} items naming an object again given another id" if swapped else "")
                      + f"; without the grammar {free} of {free_known} would parse "
                      f"({_pct(free, free_known)}; the grammar changed {changed}{items_note})")
         else:

@@ -23,13 +23,16 @@ refused the free pick. So the sampler records, per sequence,
 - `forced_close`: in closing mode, the budget refused the token the grammar alone would have allowed (the
   token budget closed the answer early: fewer cells or objects than the model was writing);
 
-- `repeat_stop` (with `stop_on_repeat`, decoding's `on_repeat: stop`): the free pick named again an object an
-  earlier item had placed (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
+- `repeat_stop` (`on_repeat="stop"`): the free pick named again an object an earlier item had placed
+  (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
   over; forced onto the next unused id it would go on inventing objects until the token budget runs out
   (measured: 16-19 items where the free answer had 5, docs/tiny_base.md point 18). So the sequence stops
   there and `generate` keeps the items before the repeat (the answer ends after its last complete item).
   (`on_repeat: skip`, generate's default, gives the sampler a grammar that allows the repeat instead:
   `AnswerGrammar.allowing_repeats`);
+- `alternatives` (`on_repeat="substitute"`, with a grammar that allows repeats): where the model's pick names an
+  object again, the ids of that item's type not yet placed, ranked by the model's scores at that step; `generate`
+  gives the item the best one no other item names (`substitute_repeats`);
 
 and a free pass with the same seeds (`generate.generate_answers`) gives the exact free answer of every
 sequence the grammar changed. The sampler hands `generate` a one-hot distribution, so `generate` must run
@@ -46,6 +49,7 @@ Example:
 
 from __future__ import annotations
 
+import re
 import weakref
 
 import torch
@@ -180,13 +184,20 @@ class Sampler:
     """
 
     def __init__(self, temperature: float, seeds: list[int], stop_ids: list[int],
-                 grammar: GrammarLogitsProcessor | None = None, stop_on_repeat: bool = False):
+                 grammar: GrammarLogitsProcessor | None = None, on_repeat: str = "next"):
+        """`on_repeat` says what an id naming an object again does (module docstring): "stop" ends the sequence,
+        "substitute" records the model's ranked unused ids there, "skip" and "next" leave it to the grammar (one
+        that allows repeats: the pick stands; the distinct one: the next-best unused id is forced)."""
         self.temperature, self.seeds, self.stop_ids = float(temperature), list(seeds), set(stop_ids)
-        self.grammar, self.stop_on_repeat = grammar, stop_on_repeat
+        self.grammar, self.on_repeat = grammar, on_repeat
         self.first_stop = next(iter(stop_ids), None)
         self.grammar_changed = [False] * len(seeds)
         self.forced_close = [False] * len(seeds)
         self.repeat_stop = [False] * len(seeds)
+        self.alternatives: list[list[list[str]]] = [[] for _ in seeds]
+        """Per sequence, one list per item that named an object again (on_repeat "substitute"): the ids of that
+        item's type not yet placed, best first by the model's score at that step (Gumbel-perturbed when sampling,
+        so the first is the sampler's own next pick)."""
         self.done = [False] * len(seeds)
         self._generators: list[torch.Generator] | None = None
 
@@ -216,10 +227,12 @@ class Sampler:
                 chosen = (keys[row] + mask).argmax()
                 if chosen != pick[row]:
                     self.grammar_changed[row] = True
-                    if self.stop_on_repeat and self.first_stop is not None and self._repeats(new[row], int(pick[row])):
+                    if self.on_repeat == "stop" and self.first_stop is not None and self._repeats(new[row], int(pick[row])):
                         self.repeat_stop[row] = True
                         pick[row] = self.first_stop
                         continue
+                if self.on_repeat == "substitute" and self._repeats(new[row], int(chosen)):
+                    self.alternatives[row].append(self._unused_ids(new[row], keys[row] + mask))
                 if closing and not self.forced_close[row]:
                     open_mask = self.grammar.row_mask(new[row], vocab, False).to(keys.device, keys.dtype)
                     self.forced_close[row] = bool((keys[row] + open_mask).argmax() != chosen)
@@ -235,3 +248,23 @@ class Sampler:
         g = self.grammar
         piece = g.tokenizer.decode([token], skip_special_tokens=False, clean_up_tokenization_spaces=False)
         return g.grammar.repeats(g.state_after(new_ids), piece)
+
+    def _unused_ids(self, new_ids, keys: torch.Tensor) -> list[str]:
+        """The ids of the current item's type not placed yet that an allowed token writes out here (the slot's
+        digits so far and the token's), by `keys` (masked), best first. With a tokenizer that has a token per id
+        (the tiny base's) that is every unused id; one that writes numbers digit by digit ranks only the ids
+        its next digit completes."""
+        g = self.grammar
+        state = g.state_after(new_ids)
+        allowed = torch.nonzero(torch.isfinite(keys)).flatten()
+        out: list[str] = []
+        for token in allowed[keys[allowed].argsort(descending=True)].tolist():
+            piece = g.tokenizer.decode([token], skip_special_tokens=False, clean_up_tokenization_spaces=False)
+            slot = g.grammar.id_slot(state, piece)
+            if slot is None:
+                continue
+            (_, _, _, buf, type_, _, used), rest = slot
+            number = buf + re.match(r"\d*", rest).group()
+            if number in g.grammar.ids.get(type_, ()) and number not in used and number not in out:
+                out.append(number)
+        return out

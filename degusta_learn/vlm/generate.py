@@ -22,7 +22,13 @@ What decoding did is recorded in each `Completion.decoding`:
   reader drops it, so the answer is the free answer's objects, each once; "stop" ends the answer there
   (`repeat_stop`, see `constrain.Sampler`), keeping the items before it; "next" lets the grammar force the
   next-best unused id (a small model then invents objects until the budget runs out; docs/tiny_base.md,
-  points 18 and 30);
+  points 18 and 30); "substitute" decodes as "skip" (the model's own tokens), then gives each repeated item
+  placed elsewhere than the item it repeats the best id the model scored at that step that no item names (an
+  item repeating id and places, a loop, is dropped as with "skip"; `substitute_repeats`; `substituted`:
+  [item, named id, given id or None] per repeated item; the model's own text is the answer's `free_text`). The
+  list keeps the model's length and places; only a repeated id changes. Exact where the tokenizer writes an
+  id as one token (the tiny base's); where it writes digits one by one, the ranking sees only the last digit's
+  choices;
 - free: `constrained: false`, `cut` (the answer ran out of `max_new_tokens` before its end-of-turn).
 
 `answer_token_budget` derives `max_new_tokens` from a dataset's ground-truth answers and the tokenizer
@@ -39,6 +45,7 @@ Example:
 from __future__ import annotations
 
 import math
+import re
 
 import torch
 
@@ -48,7 +55,7 @@ from degusta_learn.vlm.inputs import ChatFormat, encode_prompt, prompt_messages
 BUDGET_MARGIN = 0.1
 """`answer_token_budget` leaves this fraction above the longest ground-truth answer (another tokenization
 of the same text, a longer answer than any target)."""
-ON_REPEAT = ("skip", "stop", "next")
+ON_REPEAT = ("skip", "stop", "next", "substitute")
 """What constrained decoding does with an item naming an object again (module docstring)."""
 
 
@@ -85,7 +92,8 @@ def generate_answers(model, processor, prompt, n: int = 1, temperature: float = 
         free_pass: constrained only: also generate, without the grammar, every answer the grammar changed
             (`decoding.free_text`; see the module docstring).
         on_repeat: constrained only: an item naming an object again is written and dropped by the reader ("skip"),
-            ends the answer ("stop") or is forced onto the next unused id ("next"); module docstring.
+            ends the answer ("stop"), is forced onto the next unused id ("next") or written and then given the
+            model's best unused id ("substitute"); module docstring.
 
     Returns:
         n `Completion`s (text without special tokens, prompt and answer token counts, `decoding`).
@@ -134,7 +142,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
         raise DegustaError("backend.constrained: constrained decoding needs the answer grammar (catalog and grid)")
     if on_repeat not in ON_REPEAT:
         raise DegustaError(f"on_repeat: expected one of {list(ON_REPEAT)}, got {on_repeat!r}")
-    if constrained and on_repeat == "skip":
+    if constrained and on_repeat in ("skip", "substitute"):
         grammar = grammar.allowing_repeats()
     seeds = [None] * len(prompts) if seeds is None else list(seeds)
     if len(seeds) != len(prompts):
@@ -154,7 +162,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
         per_prompt = len(row_seeds) // len(batch)
         proc = (GrammarLogitsProcessor(grammar, tok, prompt_len, fmt.stop_ids, max_new_tokens)
                 if with_grammar else None)
-        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc, stop_on_repeat=on_repeat == "stop")
+        sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc, on_repeat=on_repeat)
         # The sampler picks each token and hands `generate` a one-hot distribution: nothing may reshape it.
         kwargs = dict(max_new_tokens=max_new_tokens, eos_token_id=fmt.stop_ids, do_sample=True, temperature=1.0,
                       top_k=0, top_p=1.0, use_cache=True, num_return_sequences=per_prompt,
@@ -171,6 +179,12 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                 text = text[:text.rindex("}") + 1] + "]"
             rows.append((text, int(lengths[r // per_prompt]), len(row) if end is None else end + 1,
                          end is None))
+        if with_grammar and on_repeat == "substitute":
+            sampler.substituted = []  # per row: (the model's own text, [[item, named id, given id or None], ...])
+            for r, (text, *rest) in enumerate(rows):
+                new_text, swaps = substitute_repeats(text, sampler.alternatives[r])
+                rows[r] = (new_text, *rest)
+                sampler.substituted.append((text, swaps))
         return rows, sampler
 
     k = n if temperature > 0 else 1
@@ -181,8 +195,12 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                      "grammar_changed": sampler.grammar_changed[r], "repeat_stop": sampler.repeat_stop[r],
                      "free_text": None, "free_cut": False}
                     for r in range(len(rows))]
+        for r, (own, swaps) in enumerate(getattr(sampler, "substituted", [])):
+            decoding[r]["substituted"] = swaps
+            if own != rows[r][0] and not sampler.grammar_changed[r]:  # every token the model's own: so is the
+                decoding[r].update(grammar_changed=True, free_text=own)   # free answer, no second pass
         for i, prompt in enumerate(prompts):
-            changed = [j for j in range(k) if decoding[i * k + j]["grammar_changed"]]
+            changed = [j for j in range(k) if sampler.grammar_changed[i * k + j]]
             if free_pass and changed:
                 free, _ = run([prompt], [prompt_seeds[i][j] for j in changed], False)
                 for j, (text, _, _, cut) in zip(changed, free):
@@ -198,6 +216,40 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                            for c in completions * n]
         out.append(completions)
     return out
+
+
+_ITEM = re.compile(r"'id': (\d+), 'position': (\[[^\]]*\])")
+
+
+def substitute_repeats(text: str, alternatives: list[list[str]]) -> tuple[str, list[list]]:
+    """`on_repeat: substitute`: every item of a constrained answer `text` that names an object an earlier item
+    named, at other places than that item, gets the first of its `alternatives` (one ranked list of ids per
+    repeated item, in order: the sampler's `Sampler.alternatives`) that no item names: the model put another
+    object there and could not tell which. An item that repeats an earlier one's id *and* places (a model
+    looping on one item) keeps its id, as does one with no alternative left: the reader drops both.
+
+    Returns:
+        (the answer, [[item index, the id it named, the id it was given or None], ...] one per repeated item).
+    """
+    matches = list(_ITEM.finditer(text))
+    named = {m.group(1) for m in matches}
+    placed: dict[str, set[str]] = {}  # id -> the position lists its items gave
+    swaps, pieces, last = [], [], 0
+    for item, m in enumerate(matches):
+        id_, where = m.group(1), m.group(2)
+        if id_ not in placed:
+            placed[id_] = {where}
+            continue
+        options = alternatives[len(swaps)] if len(swaps) < len(alternatives) else []
+        given = None if where in placed[id_] else next((a for a in options if a not in named), None)
+        placed[id_].add(where)
+        swaps.append([item, int(id_), None if given is None else int(given)])
+        if given is not None:
+            named.add(given)
+            placed[given] = {where}
+            pieces += [text[last:m.start(1)], given]
+            last = m.end(1)
+    return "".join(pieces) + text[last:], swaps
 
 
 def answer_token_budget(tokenizer, ds, kind: str, grid=None, grammar=None, margin: float = BUDGET_MARGIN) -> dict:

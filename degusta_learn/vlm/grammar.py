@@ -192,17 +192,40 @@ class AnswerGrammar:
             return ("item", part, 3, "", type_, cells, n) if ch == " " else None
         return ("item", part, 0, "", type_, cells, n) if ch == "'" else None
 
+    def id_slot(self, state, text: str):
+        """(the state where `text`, read from `state`, reaches an id slot, the text left from there), or None if it
+        never does. A token may carry the literal's last characters before the number (" 16" after "'id':")."""
+        i = 0
+        while state is not None and not (state[0] == "item" and self.parts[state[1]] == ("slot", "id")):
+            if i == len(text):
+                return None
+            state, i = self.step(state, text[i]), i + 1
+        return None if state is None else (state, text[i:])
+
+    def id_named(self, state, text: str) -> str | None:
+        """The id that `text`, read from `state`, names in an id slot: the slot's number once it ends there (the
+        text goes on past its digits, or no id of the type that is not yet placed extends it), else None (no id
+        slot, no number, not an id of the type, or the number may still grow into another id)."""
+        slot = self.id_slot(state, text)
+        if slot is None:
+            return None
+        (_, _, _, buf, type_, _, used), rest = slot
+        digits = re.match(r"\d*", rest).group()
+        number = buf + digits
+        if not number or number not in self.ids.get(type_, ()):
+            return None
+        if len(digits) < len(rest):
+            return number
+        longer = [o for o in self.ids[type_] if o != number and o.startswith(number) and o not in used]
+        return None if longer else number
+
     def repeats(self, state, text: str) -> bool:
         """Whether `text`, read from `state`, names again an object an earlier item placed: the id slot's number
-        ends (or can only end) on an id already in the answer. The grammar refuses such text; a sampler may
-        take it as the model's sign that the list is over (`constrain.Sampler`, `on_repeat: stop`)."""
-        if state is None or state[0] != "item" or self.parts[state[1]] != ("slot", "id"):
-            return False
-        digits = re.match(r"\d*", text).group()
-        number, used = state[3] + digits, state[6]
-        if not number or number not in used:
-            return False
-        return len(digits) < len(text) or not self._prefix_ok("id", number, state[4], used)
+        ends (or can only end) on an id already in the answer (`id_named`). The distinct grammar refuses such text;
+        a sampler may take it as the model's sign that the list is over (`constrain.Sampler`, `on_repeat: stop`)
+        or give the item the model's best id not yet placed (`on_repeat: substitute`)."""
+        name = self.id_named(state, text)
+        return name is not None and name in (state[6] if state is not None else ())
 
     def _cells_after(self, last: int) -> set[str]:
         """Every non-empty prefix of a cell id that comes after cell number `last` (row-major), cached."""

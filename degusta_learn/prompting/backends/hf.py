@@ -22,6 +22,7 @@ Usage (configs/predict_hf_tiny_finetuned.yaml):
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import threading
@@ -32,11 +33,12 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import Backend, BackendConfig
 
 
-DECODING_VERSION = 4
+DECODING_VERSION = 5
 """Bump when `vlm.generate`'s sampling or `vlm.grammar` changes what a seeded answer is (2: per-answer noise
 streams, sorted cells and per-type cell limits in the grammar; 3: a constrained answer ends where the model
 names an object again, `stop_on_repeat`; 4: `on_repeat`, by default an item naming an object again is written
-and dropped and the answer goes on)."""
+and dropped and the answer goes on; 5: a repeated id is recognised where a token carries the space before the
+number, as GPT-2-style tokenizers write " 16", which `on_repeat: stop` missed)."""
 
 
 @dataclass
@@ -51,18 +53,24 @@ class HFConfig(BackendConfig):
     """A peft LoRA adapter folder (from `degusta train`)."""
     constrained: bool = False
     """Constrain decoding to the answer grammar."""
-    on_repeat: Literal["skip", "stop", "next"] = "skip"
+    on_repeat: Literal["skip", "stop", "next", "substitute"] = "skip"
     """Constrained: an item naming an object the answer already placed is written and dropped by the answer
     reader, and the answer goes on (skip); the answer ends there (stop); the grammar forces the next-best unused
-    id (next: a small model then invents objects until the budget runs out). `vlm.generate`; docs/prompting.md."""
+    id (next: a small model then invents objects until the budget runs out); the model writes it and the answer
+    goes on, then the item gets the model's best unused id at that step (substitute). `vlm.generate`;
+    docs/prompting.md."""
     device: str = "auto"
     """cpu, cuda, auto."""
     dtype: Literal["auto", "float32", "bfloat16", "float16"] = "auto"
     """float32, bfloat16, float16, auto."""
     image_size: int | None = None
     """The processor's image size budget (unset: the model's default)."""
+    context_answers: bool | None = None
+    """Each context table also written out in the answer format after its image (`vlm.prompt_options`; not the
+    paper's prompt). null: as the model was trained (its degusta_finetune.json or degusta_base.json; off for
+    any other model); true / false: so, whatever the training (e.g. a zero-shot row prompted as a fine-tune was)."""
 
-    answer_keys = ("adapter", "constrained", "on_repeat", "dtype", "image_size")
+    answer_keys = ("adapter", "constrained", "on_repeat", "dtype", "image_size", "context_answers")
     RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop or next; true was stop)"}
 
     def answer_fields(self) -> dict:
@@ -95,7 +103,7 @@ class HFBackend(Backend):
 
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None,
-                 on_repeat: str = "skip"):
+                 on_repeat: str = "skip", context_answers: bool | None = None):
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
         from degusta_learn.vlm.load import load_vlm
         from degusta_learn.vlm.record import FinetuneRecord, locate_record, read_record
@@ -114,6 +122,10 @@ class HFBackend(Backend):
         if grid is not None:
             check_grid_resolution(self.processor, self.vlm.config, grid, key="backend.image_size")
         self.options = self.record.prompt if self.record else None
+        if context_answers is not None:
+            from degusta_learn.vlm.prompt_options import PromptOptions
+
+            self.options = dataclasses.replace(self.options or PromptOptions(), context_answers=context_answers)
         self.trained_method = self.record.method if isinstance(self.record, FinetuneRecord) else None
         self.constrained, self.grid, self.catalog = constrained, grid, catalog
         self.on_repeat = on_repeat
@@ -126,7 +138,7 @@ class HFBackend(Backend):
     def from_config(cls, cfg, grid=None, catalog=None) -> HFBackend:
         return cls(cfg.model, adapter=cfg.adapter, constrained=cfg.constrained, device=cfg.device,
                    dtype=cfg.dtype, image_size=cfg.image_size, grid=grid, catalog=catalog,
-                   on_repeat=cfg.on_repeat)
+                   on_repeat=cfg.on_repeat, context_answers=cfg.context_answers)
 
     def grammar(self, method: str):
         from degusta_learn.vlm.grammar import AnswerGrammar
