@@ -118,3 +118,26 @@ def test_the_finetune_config_key_reaches_the_examples_and_the_record(small_datas
 def test_a_config_value_that_is_not_a_boolean_names_the_key(small_dataset_dir):
     with pytest.raises(DegustaError, match="context_answers"):
         load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "data": {"context_answers": "often"}})
+
+
+def test_the_hf_backend_writes_the_contexts_out_when_asked_whatever_the_training(setting, monkeypatch):
+    """`backend.context_answers`: null keeps how the model was trained (a plain model: the paper's prompt);
+    true / false overrides it (a zero-shot row prompted as a contexts-as-text fine-tune was); it keys the cache."""
+    from finetune_support import tiny_dir
+
+    from degusta_learn.prompting.backends.base import backend_config
+    from degusta_learn.prompting.backends.hf import HFBackend
+    from degusta_learn.vlm import generate
+
+    ds, episode, renderer = setting
+    prompt = build_prompt("mogma", ds, episode, renderer, Grid(8, 8))
+    seen = []
+    monkeypatch.setattr(generate, "generate_answers", lambda model, processor, p, **kw: seen.append(p) or [])
+    model = str(tiny_dir("idefics3"))
+    for value, lines in ((None, 0), (True, 2), (False, 0)):
+        HFBackend(model, device="cpu", context_answers=value).complete(prompt, 1, 0.0, 64)
+        assert len(_answer_lines(seen[-1])) == lines
+    keys = [backend_config("hf", model=model, context_answers=v).answer_fields() for v in (None, True)]
+    assert keys[0]["context_answers"] is None and keys[1]["context_answers"] is True
+    with pytest.raises(DegustaError, match="backend.context_answers"):
+        backend_config("hf", model=model, context_answers="often")
