@@ -19,6 +19,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -27,6 +28,9 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin
 import yaml
 
 from degusta_learn.errors import DegustaError
+
+_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+"""A number in exponent notation, which YAML 1.1 (PyYAML) reads as text unless it has a "." (6e-3, 1e5)."""
 from degusta_learn.fileio import open_regular
 
 T = TypeVar("T")
@@ -363,6 +367,8 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
         if isinstance(value, int) and not isinstance(value, bool):
             return value
     elif tp is float:
+        if isinstance(value, str) and _EXPONENT.fullmatch(value.strip()):
+            value = float(value)  # 6e-3: YAML 1.1 (PyYAML) reads a number without a "." as text
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             try:
                 out = float(value)

@@ -29,6 +29,19 @@ def test_yaml_overrides_and_nested(tmp_path):
     assert cfg == Outer("a", 1.0, ["x", "y"], Inner("hf", 3), None)
 
 
+def test_numbers_in_exponent_notation_are_numbers_where_a_float_is_expected(tmp_path):
+    """YAML 1.1 (PyYAML) reads 6e-3 as text (it wants 6.0e-3): a float key takes it as the number it means; a
+    string key keeps the text, and other text is still refused."""
+    p = tmp_path / "c.yaml"
+    p.write_text("method: a\nrate: 6e-3\n")
+    assert load_config(Outer, p).rate == 0.006
+    assert load_config(Outer, p, ["rate=-1.5E+2"]).rate == -150.0
+    assert load_config(Outer, p, ["path=6e-3"]).path == "6e-3"
+    for bad in ("6e", "e-3", "fast", "1e999"):
+        with pytest.raises(DegustaError, match="rate: expected"):
+            load_config(Outer, p, [f"rate={bad}"])
+
+
 @dataclass
 class Kind:
     """A config kind whose sections default to configured instances, as PretrainConfig's optim and data do."""
