@@ -133,3 +133,49 @@ def test_follow_up_turns_supervise_each_answer_and_none_of_the_questions(setup):
     assert full.endswith(fmt.followup_text("And the second?"))
     counts = collate.token_counts([follow, ex])
     assert counts[0]["answer"] > 2 * counts[1]["answer"] and counts[0]["total"] == int(batch["attention_mask"][0].sum())
+
+
+def test_list_end_weight_weighs_the_tokens_that_set_the_lists_length(setup):
+    """data.list_end_weight: the tokens going on to another item or closing the list (never a cell list's "]")
+    carry the weight; the loss is the weighted mean, by hand; weight 1 is the plain loss and adds no key."""
+    import torch.nn.functional as F
+
+    from degusta_learn.finetune.collate import list_decisions
+
+    kind, model, processor, fmt = setup
+    tok = processor.tokenizer
+    exs = examples(context=2)
+    ids = tok(exs[0].answer, add_special_tokens=False)["input_ids"]
+    marks = list_decisions(tok, ids)
+    n_items = len(parse_answer(exs[0].answer, "grid", dataset().catalog, GRID))
+    assert len(marks) == n_items  # a "," after every item but the last, and the closing "]"
+    texts = [tok.decode([ids[i]]) for i in marks]
+    assert all("," in t for t in texts[:-1]) and "]" in texts[-1] and marks[-1] == max(
+        i for i, t in enumerate(ids) if "]" in tok.decode([t]))
+    assert list_decisions(tok, tok("Sure: [", add_special_tokens=False)["input_ids"]) == []
+
+    plain = Collator(processor, fmt, 4096, model.config.image_token_id)
+    heavy = Collator(processor, fmt, 4096, model.config.image_token_id, list_end_weight=5.0)
+    b1, b5 = plain([exs[0], exs[1]]), heavy([exs[0], exs[1]])
+    assert "label_weights" not in b1 and "label_weights" in b5
+    w = b5["label_weights"]
+    assert set(w[b5["labels"] == IGNORE].tolist()) == {0.0} and set(w[b5["labels"] != IGNORE].tolist()) == {1.0, 5.0}
+    with torch.no_grad():
+        base, n = lm_loss(model, b1)
+        weighted, n5 = lm_loss(model, b5)
+        logits = model(**{k: v for k, v in b1.items() if k != "labels"}).logits[:, :-1]
+        target = b1["labels"][:, 1:]
+        sel = target != IGNORE
+        ce = F.cross_entropy(logits[sel].float(), target[sel], reduction="none")
+        ws = w[:, 1:][sel]
+    assert n == n5 and not torch.allclose(base, weighted)
+    assert torch.allclose(weighted, (ce * ws).sum() / ws.sum(), atol=1e-5)
+
+
+@pytest.mark.parametrize("value", [-1.0, "heavy", 1e6])
+def test_list_end_weight_out_of_range_names_the_key(small_dataset_dir, value):
+    from degusta_learn.config import load_config
+    from degusta_learn.finetune.config import FinetuneConfig
+
+    with pytest.raises(DegustaError, match="data.list_end_weight"):
+        load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "data": {"list_end_weight": value}})

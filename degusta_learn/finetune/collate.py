@@ -28,9 +28,12 @@ class Collator:
     """Examples -> a padded batch with labels (see the module docstring)."""
 
     def __init__(self, processor, fmt: ChatFormat, max_length: int, image_token_id: int | None,
-                 key: str = "data.max_length"):
+                 key: str = "data.max_length", list_end_weight: float = 1.0):
+        """`list_end_weight` != 1: batches carry `label_weights`, that weight on the answer tokens deciding the
+        list's length (`list_decisions`) and 1 on the other supervised tokens."""
         self.processor, self.fmt, self.max_length = processor, fmt, max_length
         self.image_token_id, self.key = image_token_id, key
+        self.list_end_weight = float(list_end_weight)
         self.pad_id = processor.tokenizer.pad_token_id
         if self.pad_id is None:
             self.pad_id = fmt.end_id
@@ -117,7 +120,37 @@ class Collator:
             for k, v in per_token.items():
                 v[b, :p] = enc[k][b][real]
         out.update(input_ids=input_ids, attention_mask=attention, labels=labels, **per_token)
+        if self.list_end_weight != 1.0:
+            weights = (labels != IGNORE).float()
+            for b, (p, (c, _)) in enumerate(zip(prompt_lens, completions)):
+                for i in list_decisions(self.processor.tokenizer, c):
+                    weights[b, p + i] = self.list_end_weight
+            out["label_weights"] = weights
         return out
+
+
+def list_decisions(tokenizer, ids: list[int]) -> list[int]:
+    """Indices of the tokens of an answer's ids that decide its list's length: those whose text carries, at
+    the top level of the answer's list (inside its "[", outside every item), the "," going on to another item
+    or the "]" ending the list. Text outside any list (before the "[") counts for nothing.
+
+    Example: "[{'id': 3, 'position': ['A1']}, {'id': 5, ...}]" -> the token with "}," (or ",") and the last "]".
+    """
+    out, depth = [], 0
+    for i, token in enumerate(ids):
+        text = tokenizer.decode([token], skip_special_tokens=False, clean_up_tokenization_spaces=False)
+        decides = False
+        for ch in text:
+            if ch in "[{":
+                depth += 1
+            elif ch in "]}":
+                decides = decides or (ch == "]" and depth == 1)
+                depth = max(depth - 1, 0)
+            elif ch == "," and depth == 1:
+                decides = True
+        if decides:
+            out.append(i)
+    return out
 
 
 def supervised_text(tokenizer, batch: dict, row: int) -> str:

@@ -89,6 +89,10 @@ class DataConfig:
     """After each context image, its arrangement written in the answer format (ids, cells, directions): the
     model is told which objects the person used instead of reading them from the pictures. Not the paper's
     prompt (vlm/prompt_options.py); saved with the adapter, so predict prompts the same way."""
+    list_end_weight: float = bounded(1.0, 0.0, 1000.0)
+    """Loss weight of the answer tokens that decide the list's length: each one that ends the list ("]") or
+    goes on to another item (", {"); 1: every answer token alike. The loss is then the weighted mean
+    (`finetune/loss.py`)."""
     max_length: int = bounded(2048, 16, 262_144)
     """Token budget of one example (prompt + images + answer); longer examples are an error, never truncated."""
     batch_size: int = bounded(4, 1, 4096)

@@ -143,7 +143,8 @@ def run(cfg: FinetuneConfig) -> Path:
         if cfg.model.cache_tower:
             cache_frozen_tower(model)
         fmt = chat_format(model, processor)
-        collator = Collator(processor, fmt, cfg.data.max_length, getattr(model.config, "image_token_id", None))
+        collator = Collator(processor, fmt, cfg.data.max_length, getattr(model.config, "image_token_id", None),
+                            list_end_weight=cfg.data.list_end_weight)
         train, val = build_examples(cfg, ds, grid)
         check_budget(train, collator)
         per_epoch = -(-len(train) // cfg.data.batch_size)
