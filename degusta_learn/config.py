@@ -28,12 +28,12 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin
 import yaml
 
 from degusta_learn.errors import DegustaError
-
-_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
-"""A number in exponent notation, which YAML 1.1 (PyYAML) reads as text unless it has a "." (6e-3, 1e5)."""
 from degusta_learn.fileio import open_regular
 
 T = TypeVar("T")
+
+_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+"""A number in exponent notation, which YAML 1.1 (PyYAML) reads as text unless it has a "." (6e-3, 1e5)."""
 
 
 MAX_CONFIG_BYTES = 4 * 1024 * 1024

@@ -135,7 +135,7 @@ class EvalConfig:
     on_repeat: Literal["skip", "stop", "next", "substitute"] = "skip"
     """Constrained: what an item naming an object the answer already placed does (as the hf backend's
     `backend.on_repeat`, so validation scores what predict writes): skip, stop, next or substitute."""
-    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop or next; true was stop)"}
+    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop, next or substitute; true was stop)"}
     max_new_tokens: int = bounded(384, 1, 32_768)
     """Most new tokens per generated answer."""
     batch_size: int | None = bounded(None, 1, 4096)

@@ -71,7 +71,7 @@ class HFConfig(BackendConfig):
     any other model); true / false: so, whatever the training (e.g. a zero-shot row prompted as a fine-tune was)."""
 
     answer_keys = ("adapter", "constrained", "on_repeat", "dtype", "image_size", "context_answers")
-    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop or next; true was stop)"}
+    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop, next or substitute; true was stop)"}
 
     def answer_fields(self) -> dict:
         """The base keys plus the decoding version: answers cached before a change of the sampler or the
