@@ -68,6 +68,15 @@ def test_token_trie_follows_added_tokens():
     assert trie_words(token_trie(tok, alphabet)) == {"a", "ab"}
 
 
+CUP16 = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
+AGAIN = f"[{CUP16}, {{'type': 'cup', 'id': "
+"""An answer whose second item is about to name its id: writing 16 again names an object twice."""
+
+
+def stop_ids(tok) -> list[int]:
+    return [tok.eos_token_id if tok.eos_token_id is not None else 0]
+
+
 @pytest.fixture(scope="module")
 def tiny():
     model, processor = load("idefics3")
@@ -123,8 +132,8 @@ def test_token_budget_fits_every_ground_truth_answer(tiny):
 
 def test_the_grammar_knows_when_an_id_names_an_object_again():
     g = AnswerGrammar("grid", dataset().catalog, GRID)
-    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
-    again = g.feed(g.start(), f"[{item}, {{'type': 'cup', 'id': ")
+    item = CUP16
+    again = g.feed(g.start(), AGAIN)
     assert g.repeats(again, "16") and g.repeats(again, "16, ") and g.repeats(g.feed(again, "1"), "6")
     assert not g.repeats(again, "17") and not g.repeats(again, "1")  # "1" may become 17: nothing repeated yet
     assert not g.repeats(g.feed(g.start(), "[{'type': 'cup', 'id': "), "16")  # nothing placed before
@@ -145,9 +154,8 @@ def test_a_model_that_names_an_object_again_ends_its_answer_there(tiny, stop):
 
     model, processor, _, grammar = tiny
     tok = processor.tokenizer
-    stops = [tok.eos_token_id if tok.eos_token_id is not None else 0]
-    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
-    prefix = tok.encode(f"[{item}, {{'type': 'cup', 'id': ", add_special_tokens=False)
+    stops = stop_ids(tok)
+    prefix = tok.encode(AGAIN, add_special_tokens=False)
     scores = torch.zeros(1, len(tok))
     scores[0, tok.encode("16", add_special_tokens=False)[0]] = 10.0  # the model's pick: id 16 again
     proc = GrammarLogitsProcessor(grammar, tok, 0, stops, max_new_tokens=400)
@@ -170,17 +178,16 @@ def test_skip_lets_the_model_name_an_object_again_and_the_reader_drops_that_item
 
     model, processor, _, grammar = tiny
     tok = processor.tokenizer
-    stops = [tok.eos_token_id if tok.eos_token_id is not None else 0]
-    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
-    head = f"[{item}, {{'type': 'cup', 'id': "
+    stops = stop_ids(tok)
+    item = CUP16
     skipping = grammar.allowing_repeats()
-    assert skipping.feed(skipping.start(), head + "16") is not None and grammar.feed(grammar.start(), head + "16") is None
+    assert skipping.feed(skipping.start(), AGAIN + "16") is not None and grammar.feed(grammar.start(), AGAIN + "16") is None
     assert skipping is grammar.allowing_repeats() and skipping.allowing_repeats() is skipping and grammar.distinct
     scores = torch.zeros(1, len(tok))
     sixteen = tok.encode("16", add_special_tokens=False)[0]
     scores[0, sixteen] = 10.0  # the model's pick: id 16 again
     sampler = Sampler(0.0, [0], stops, GrammarLogitsProcessor(skipping, tok, 0, stops, max_new_tokens=400))
-    assert int(sampler(torch.tensor([tok.encode(head, add_special_tokens=False)]), scores).argmax()) == sixteen
+    assert int(sampler(torch.tensor([tok.encode(AGAIN, add_special_tokens=False)]), scores).argmax()) == sixteen
     assert sampler.grammar_changed == [False] and sampler.repeat_stop == [False]
     other = "{'type': 'plate', 'id': 76, 'position': ['D4'], 'cardinal_direction': 'N'}"
     text = f"[{item}, {item}, {other}]"
@@ -232,9 +239,8 @@ def test_substitute_gives_a_repeated_item_the_models_best_unused_id(tiny):
 
     model, processor, _, grammar = tiny
     tok = processor.tokenizer
-    stops = [tok.eos_token_id if tok.eos_token_id is not None else 0]
-    item = "{'type': 'cup', 'id': 16, 'position': ['A1'], 'cardinal_direction': 'N'}"
-    head = tok.encode(f"[{item}, {{'type': 'cup', 'id': ", add_special_tokens=False)
+    stops = stop_ids(tok)
+    head = tok.encode(AGAIN, add_special_tokens=False)
     scores = torch.zeros(1, len(tok))
     ids = {n: tok.encode(n, add_special_tokens=False) for n in ("16", "17", "18")}
     assert all(len(v) == 1 for v in ids.values())  # the tiny tokenizer writes these ids as one token

@@ -49,7 +49,6 @@ Example:
 
 from __future__ import annotations
 
-import re
 import weakref
 
 import torch
@@ -260,11 +259,10 @@ class Sampler:
         out: list[str] = []
         for token in allowed[keys[allowed].argsort(descending=True)].tolist():
             piece = g.tokenizer.decode([token], skip_special_tokens=False, clean_up_tokenization_spaces=False)
-            slot = g.grammar.id_slot(state, piece)
+            slot = g.grammar.id_number(state, piece)
             if slot is None:
                 continue
-            (_, _, _, buf, type_, _, used), rest = slot
-            number = buf + re.match(r"\d*", rest).group()
+            number, type_, used, _ = slot
             if number in g.grammar.ids.get(type_, ()) and number not in used and number not in out:
                 out.append(number)
         return out

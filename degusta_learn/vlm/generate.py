@@ -179,12 +179,6 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                 text = text[:text.rindex("}") + 1] + "]"
             rows.append((text, int(lengths[r // per_prompt]), len(row) if end is None else end + 1,
                          end is None))
-        if with_grammar and on_repeat == "substitute":
-            sampler.substituted = []  # per row: (the model's own text, [[item, named id, given id or None], ...])
-            for r, (text, *rest) in enumerate(rows):
-                new_text, swaps = substitute_repeats(text, sampler.alternatives[r])
-                rows[r] = (new_text, *rest)
-                sampler.substituted.append((text, swaps))
         return rows, sampler
 
     k = n if temperature > 0 else 1
@@ -195,10 +189,12 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                      "grammar_changed": sampler.grammar_changed[r], "repeat_stop": sampler.repeat_stop[r],
                      "free_text": None, "free_cut": False}
                     for r in range(len(rows))]
-        for r, (own, swaps) in enumerate(getattr(sampler, "substituted", [])):
-            decoding[r]["substituted"] = swaps
-            if own != rows[r][0] and not sampler.grammar_changed[r]:  # every token the model's own: so is the
-                decoding[r].update(grammar_changed=True, free_text=own)   # free answer, no second pass
+        if on_repeat == "substitute":
+            for r, (own, *rest) in enumerate(rows):
+                text, decoding[r]["substituted"] = substitute_repeats(own, sampler.alternatives[r])
+                rows[r] = (text, *rest)
+                if text != own and not sampler.grammar_changed[r]:  # every token the model's own: so is the
+                    decoding[r].update(grammar_changed=True, free_text=own)  # free answer, no second pass
         for i, prompt in enumerate(prompts):
             changed = [j for j in range(k) if sampler.grammar_changed[i * k + j]]
             if free_pass and changed:

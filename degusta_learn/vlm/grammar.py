@@ -192,29 +192,31 @@ class AnswerGrammar:
             return ("item", part, 3, "", type_, cells, n) if ch == " " else None
         return ("item", part, 0, "", type_, cells, n) if ch == "'" else None
 
-    def id_slot(self, state, text: str):
-        """(the state where `text`, read from `state`, reaches an id slot, the text left from there), or None if it
-        never does. A token may carry the literal's last characters before the number (" 16" after "'id':")."""
+    def id_number(self, state, text: str):
+        """(the id slot's number after `text` is read from `state`, the item's type, the ids placed before it,
+        whether the text goes on past the number), or None if the text never reaches an id slot. A token may carry
+        the literal's last characters before the number (" 16" after "'id':")."""
         i = 0
         while state is not None and not (state[0] == "item" and self.parts[state[1]] == ("slot", "id")):
             if i == len(text):
                 return None
             state, i = self.step(state, text[i]), i + 1
-        return None if state is None else (state, text[i:])
+        if state is None:
+            return None
+        digits = re.match(r"\d*", text[i:]).group()
+        return state[3] + digits, state[4], state[6], i + len(digits) < len(text)
 
     def id_named(self, state, text: str) -> str | None:
         """The id that `text`, read from `state`, names in an id slot: the slot's number once it ends there (the
         text goes on past its digits, or no id of the type that is not yet placed extends it), else None (no id
         slot, no number, not an id of the type, or the number may still grow into another id)."""
-        slot = self.id_slot(state, text)
+        slot = self.id_number(state, text)
         if slot is None:
             return None
-        (_, _, _, buf, type_, _, used), rest = slot
-        digits = re.match(r"\d*", rest).group()
-        number = buf + digits
+        number, type_, used, goes_on = slot
         if not number or number not in self.ids.get(type_, ()):
             return None
-        if len(digits) < len(rest):
+        if goes_on:
             return number
         longer = [o for o in self.ids[type_] if o != number and o.startswith(number) and o not in used]
         return None if longer else number
