@@ -7,16 +7,20 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from degusta_learn.finetune.config import DataConfig, FinetuneConfig, FinetuneOptimConfig
+from degusta_learn.finetune.config import DataConfig, FinetuneConfig, FinetuneOptimConfig, FinetuneTrainerConfig
 from degusta_learn.finetune.data import TrainSampler
-from degusta_learn.finetune.train import build_examples
+from degusta_learn.finetune.train import build_examples, train_sampler
 from degusta_learn.scene import participants_in
 
 
-def _examples(resample: bool = True, seed: int = 0, contexts=(2, 4)):
-    cfg = FinetuneConfig(seed=seed, data=DataConfig(contexts=list(contexts), val_episodes=6, render_size=64,
-                                                    resample_contexts=resample, compose=["objects"]))
-    return build_examples(cfg, fs.dataset(), fs.GRID)
+def _config(resample: bool = True, seed: int = 0, contexts=(2, 4), train_seed: int = 0) -> FinetuneConfig:
+    return FinetuneConfig(seed=seed, data=DataConfig(contexts=list(contexts), val_episodes=6, render_size=64,
+                                                     resample_contexts=resample, compose=["objects"]),
+                          trainer=FinetuneTrainerConfig(seed=train_seed))
+
+
+def _examples(resample: bool = True, seed: int = 0, contexts=(2, 4), train_seed: int = 0):
+    return build_examples(_config(resample, seed, contexts, train_seed), fs.dataset(), fs.GRID)
 
 
 def test_contexts_change_between_epochs_and_repeat_with_the_seed():
@@ -30,6 +34,16 @@ def test_contexts_change_between_epochs_and_repeat_with_the_seed():
     fixed, _ = _examples(resample=False)
     assert all(fixed.episode(i, 0) == fixed.episode(i, 5) == fixed.episodes[i] for i in range(len(fixed)))
     assert all(val.episode(i, 0) == val.episode(i, 7) for i in range(len(val)))  # validation never changes
+
+
+def test_a_training_seed_keeps_the_split_and_changes_order_and_contexts():
+    train, val = _examples()
+    other, other_val = _examples(train_seed=1)  # trainer.seed: a second training run on the same split
+    assert other.episodes == train.episodes and other_val.episodes == val.episodes
+    assert [other.episode(i, 1) for i in range(len(other))] != [train.episode(i, 1) for i in range(len(train))]
+    orders = [[i for _, i in train_sampler(_config(train_seed=s), data, None)(1, 0)]
+              for s, data in ((0, train), (1, other))]
+    assert sorted(orders[0]) == sorted(orders[1]) and orders[0] != orders[1]
 
 
 def test_resampled_contexts_stay_with_their_train_participant():

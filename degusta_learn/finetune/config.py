@@ -101,7 +101,7 @@ class DataConfig:
     """DataLoader worker processes rendering images (0: in the main process)."""
     resample_contexts: bool = True
     """Draw each training episode's context trials afresh every epoch (from the same participant's other trials,
-    seeded by seed, epoch and index); false: the same contexts every epoch. Validation episodes never change."""
+    seeded by trainer.seed, epoch and index); false: the same contexts every epoch. Validation episodes never change."""
     group_by_length: bool = False
     """Batch examples of similar token counts together (less padding; transformers' length-grouped order)."""
 
@@ -180,7 +180,8 @@ class FinetuneConfig:
     method: Literal["louma", "logma", "mouma", "mogma"] = "mogma"
     """Prompting method whose prompts and answer format are learned: mogma, logma (grid) or mouma, louma."""
     seed: int = seed_field()
-    """Seed of the participant split (use the same `seed` in predict configs) and of training."""
+    """Seed of the participant split (use the same `seed` in predict configs) and of the validation subset;
+    `trainer.seed` seeds the training itself (adapter init, example order, resampled contexts)."""
     model: ModelConfig = field(default_factory=ModelConfig)
     """Which VLM."""
     lora: LoraConfig = field(default_factory=LoraConfig)

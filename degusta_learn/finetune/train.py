@@ -36,19 +36,21 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
     val = make_episodes(ds, cfg.data.val_context, "val", cfg.seed) if cfg.data.val_episodes else []
     if len(val) > cfg.data.val_episodes:
         val = random.Random(cfg.seed + 1).sample(val, cfg.data.val_episodes)
-    resample = cfg.seed if cfg.data.resample_contexts else None  # training contexts drawn afresh each epoch
+    # training contexts drawn afresh each epoch, seeded by the training seed (the split stays the split seed's)
+    resample = cfg.trainer.seed if cfg.data.resample_contexts else None
     return (LiftedExamples(ds, train, cfg.method, grid, cfg.data.render_size, opts, resample_seed=resample),
             LiftedExamples(ds, val, cfg.method, grid, cfg.data.render_size, opts))  # validation: fixed
 
 
 def train_sampler(cfg: FinetuneConfig, train, collator):
-    """`(num_replicas, rank) -> TrainSampler` for `FinetuneData`: seeded by `seed`, length-grouped by each
+    """`(num_replicas, rank) -> TrainSampler` for `FinetuneData`: seeded by `trainer.seed` (two training seeds
+    on one participant split differ in order, contexts and initial adapters), length-grouped by each
     example's token count (`count_tokens`, epoch 0's contexts: a resampled context changes only its
     placement-order lines, a few tokens) when `data.group_by_length`."""
     from degusta_learn.finetune.data import TrainSampler
 
     lengths = [c["total"] for c in count_tokens(train, collator)] if cfg.data.group_by_length else None
-    return lambda replicas, rank: TrainSampler(train, cfg.seed, replicas, rank, lengths=lengths,
+    return lambda replicas, rank: TrainSampler(train, cfg.trainer.seed, replicas, rank, lengths=lengths,
                                                batch_size=cfg.data.batch_size)
 
 
