@@ -16,7 +16,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.trainer import TrainerConfig, check_trainer, world_size
+from degusta_learn.trainer import TrainerConfig, check_trainer, effective_precision, world_size
 
 GiB = 1024**3
 ADAMW_STATE_BYTES = 8
@@ -138,8 +138,11 @@ def dry_run_trainer_lines(cfg: TrainerConfig, monitors: Iterable[str] | None, n_
     lines = [("steps per epoch", f"{steps} ({per}{acc}); stops at {' or '.join(x for x in limit if x)}")]
     try:
         check_trainer(cfg, monitors)
+        precision = effective_precision(cfg)
+        if precision != cfg.precision:
+            precision = f"{cfg.precision}, run as {precision} here: this CPU has no native bfloat16"
         lines.append(("trainer check", f"ok on this machine ({cfg.accelerator}, devices {cfg.devices}, "
-                                       f"num_nodes {cfg.num_nodes}, strategy {cfg.strategy}, {cfg.precision})"))
+                                       f"num_nodes {cfg.num_nodes}, strategy {cfg.strategy}, {precision})"))
     except DegustaError as e:  # a GPU config checked on a login node: say so, the rest of the report still holds
         lines.append(("trainer check", f"FAILS on this machine: {e}"))
     return lines

@@ -695,21 +695,26 @@ def cpu_has_native_bf16() -> bool:
     return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
-def run_precision(cfg: TrainerConfig) -> str:
-    """The precision Lightning gets: `cfg.precision`, except bfloat16 on a CPU that has no native bfloat16
-    (AVX512-BF16 or AMX), which runs it emulated: measured on an AVX2 EPYC, a 3x3 convolution 127x and a matmul
-    60x slower than float32. There it is 32-true, with a note (the same config stays fast where bf16 is native)."""
+def effective_precision(cfg: TrainerConfig) -> str:
+    """The precision a run of `cfg` uses on this machine: `cfg.precision`, except bfloat16 on a CPU that has no
+    native bfloat16 (AVX512-BF16 or AMX), which runs it emulated: measured on an AVX2 EPYC, a 3x3 convolution 127x
+    and a matmul 60x slower than float32. There it is 32-true (the same config stays fast where bf16 is native)."""
     import torch
 
     if cfg.precision not in ("bf16-mixed", "bf16") or cfg.accelerator not in ("cpu", "auto"):
         return cfg.precision
     if cfg.accelerator == "auto" and torch.cuda.is_available():
         return cfg.precision
-    if cpu_has_native_bf16():
-        return cfg.precision
-    print(f"degusta: note: trainer.precision {cfg.precision}: this CPU has no native bfloat16 (AVX512-BF16/AMX) "
-          f"and emulates it ~60x slower than float32; training in 32-true", file=sys.stderr)
-    return "32-true"
+    return cfg.precision if cpu_has_native_bf16() else "32-true"
+
+
+def run_precision(cfg: TrainerConfig) -> str:
+    """The precision Lightning gets (`effective_precision`), with a note where it is not `cfg.precision`."""
+    precision = effective_precision(cfg)
+    if precision != cfg.precision:
+        print(f"degusta: note: trainer.precision {cfg.precision}: this CPU has no native bfloat16 (AVX512-BF16/AMX) "
+              f"and emulates it ~60x slower than float32; training in {precision}", file=sys.stderr)
+    return precision
 
 
 def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):

@@ -42,6 +42,37 @@ def test_finetune_dry_run_reports_and_writes_nothing(tmp_path, data):
     assert not (tmp_path / "runs").exists()
 
 
+def test_the_memory_estimate_keeps_tower_activations_only_where_the_tower_trains(tmp_path, data):
+    """An adapted connector sits after the tower: its backward pass keeps none of the tower's activations."""
+    notes = {}
+    for name, extra in (("connector", ["lora.connector=true", "lora.vision_targets=[]"]),
+                        ("frozen", ["lora.connector=false", "lora.vision_targets=[]"]),
+                        ("tower", ["lora.connector=false", "lora.vision_targets=[q_proj,v_proj]"])):
+        text = _lines(CONFIGS / "finetune_tiny_cpu.yaml", _finetune(tmp_path, data, *extra))
+        notes[name] = next(line for line in text.splitlines() if "predicted memory" in line)
+    assert "frozen vision tower: no activations kept for it" in notes["connector"]
+    assert notes["connector"].split("(")[0] == notes["frozen"].split("(")[0]  # the same estimate
+    assert "the vision tower trains: its activations are counted" in notes["tower"]
+    assert notes["tower"].split("(")[0] != notes["frozen"].split("(")[0]
+
+
+def test_the_dry_run_reports_and_sizes_the_precision_this_cpu_runs(tmp_path, data, monkeypatch):
+    """bf16-mixed on a CPU without native bfloat16 trains in 32-true: the report says so and sizes fp32 activations."""
+    import torch
+
+    reports = {}
+    for native in (True, False):
+        monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda native=native: native)
+        text = _lines(CONFIGS / "finetune_tiny_cpu.yaml", _finetune(tmp_path, data, "trainer.precision=bf16-mixed",
+                                                                    "trainer.accelerator=cpu"))
+        check = next(line for line in text.splitlines() if "trainer check" in line)
+        memory = next(line for line in text.splitlines() if "predicted memory" in line)
+        value, unit = memory.split("activations ")[1].split()[:2]
+        reports[native] = check, float(value) * {"KiB": 2**10, "MiB": 2**20, "GiB": 2**30}[unit]
+    assert "run as 32-true here" in reports[False][0] and "run as" not in reports[True][0]
+    assert reports[False][1] > reports[True][1]  # 4-byte activations instead of 2
+
+
 def test_finetune_dry_run_counts_like_the_collator(tmp_path, data):
     """The dry run's token counts are the collator's on the real (rendered) examples."""
     from degusta_learn.config import load_config

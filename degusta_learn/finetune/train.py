@@ -262,7 +262,7 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
     """The dry run's memory estimate of a VLM fine-tune (see `dryrun.estimate_memory` for the model)."""
     from degusta_learn.dryrun import (CPU_ACTIVATION_FACTOR, RUNTIME_CPU_BYTES, RUNTIME_GPU_BYTES, estimate_memory,
                                       transformer_activations)
-    from degusta_learn.trainer import world_size
+    from degusta_learn.trainer import effective_precision, world_size
 
     dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu and lora_cfg.mode != "full"
                                                                else "float32")  # full: fp32 master weights
@@ -271,7 +271,8 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
     if lora_cfg.mode == "qlora":
         param_bytes, note = 0.55, "4-bit NF4 base (~0.55 bytes per weight with its scales)"
     trainable_bytes = 4 if lora_cfg.mode != "full" else param_bytes  # peft keeps adapter weights in fp32
-    act_bytes = 2 if (param_bytes < 4 or "bf16" in trainer_cfg.precision or "16" in trainer_cfg.precision) else 4
+    precision = effective_precision(trainer_cfg)  # bf16-mixed on a CPU without native bf16 runs as 32-true
+    act_bytes = 2 if (param_bytes < 4 or "16" in precision) else 4
     T = max(c["total"] for c in counts)
     text = config.get_text_config()
     hidden = getattr(text, "hidden_size", 0)
@@ -285,7 +286,8 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
     answer = max(c["answer"] for c in counts)
     vocab = getattr(text, "vocab_size", 0)
     acts += batch_size * answer * vocab * 4 * 2  # fp32 logits of the supervised positions + their softmax grad
-    vision_trains = lora_cfg.vision_targets or lora_cfg.connector or (lora_cfg.mode == "full" and not lora_cfg.freeze_vision)
+    # the connector comes after the tower: adapting it keeps none of the tower's activations for the backward pass
+    vision_trains = lora_cfg.vision_targets or (lora_cfg.mode == "full" and not lora_cfg.freeze_vision)
     vc = getattr(config, "vision_config", None)
     if vision_trains and vc is not None and getattr(vc, "hidden_size", None) and getattr(vc, "num_hidden_layers", None):
         merge = getattr(config, "scale_factor", None) or getattr(vc, "spatial_merge_size", None) or 1
