@@ -130,8 +130,7 @@ def main() -> None:
         preds[name] = read_predictions(path, ds.catalog)
 
     hf("tiny_vlm_zeroshot", "configs/predict_hf_base_zeroshot.yaml", [])
-    runs = [(mode, seed) for mode in args.modes for seed in args.seeds]
-    for mode, seed in runs:
+    for mode, seed in [(mode, seed) for mode in args.modes for seed in args.seeds]:
         name = run_name(mode, seed)
         run_dir = out / "checkpoints" / name
         extra = [f"lora.mode={mode}", f"optim.lr={args.full_lr}"] if mode == "full" else []
@@ -181,8 +180,10 @@ def main() -> None:
           "<=2 matched | failed |")
     print("|---|---|---|---|---:|---:|---:|---:|")
     summary = {}
-    table = [n for name in preds  # each mean-over-seeds row right after its mode's last seed
-             for n in [name] + [rows[m] for m in args.modes if name == run_name(m, args.seeds[-1]) and rows[m] != name]]
+    table = []
+    for name in preds:  # each mean-over-seeds row right after its mode's last seed
+        table.append(name)
+        table += [rows[m] for m in args.modes if len(args.seeds) > 1 and name == run_name(m, args.seeds[-1])]
     for name in table:
         acc, rmsd, srmsd = (bootstrap_ci(col(name, k)) for k in ("object_accuracy", "rmsd", "set_rmsd"))
         n_pred = col(name, "n_pred")
@@ -210,9 +211,8 @@ def main() -> None:
         ratio = summary[rows[m]]["rmsd"][0] / summary["copy_nearest"]["rmsd"][0]
         print(f"\n{rows[m]}: Kabsch RMSD / copy_nearest = {ratio:.2f} (goal <= 1.15)")
         if len(args.seeds) > 1:  # how far apart the seeds' runs are: the spread a one-run difference sits in
-            spread = {k: np.ptp([summary[run_name(m, s)][k][0] for s in args.seeds])
-                      for k in ("object_accuracy", "rmsd", "set_rmsd")}
-            spread["count_error"] = np.ptp([summary[run_name(m, s)]["count_error"] for s in args.seeds])
+            spread = {k: np.ptp([np.nanmean(col(run_name(m, s), k)) for s in args.seeds])
+                      for k in ("object_accuracy", "rmsd", "set_rmsd", "count_error")}
             print(f"tiny_vlm_{m}: spread over seeds (max - min): "
                   + ", ".join(f"{k} {v:.3f}" for k, v in spread.items()))
     print("\nseconds:", json.dumps({k: round(v) for k, v in seconds.items()}))
