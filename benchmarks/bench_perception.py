@@ -6,7 +6,8 @@ accuracy (plates left out: their direction cannot be seen), GoMO mark-id accurac
 parse rate, overall and by the number of scenes in the prompt. Constrained decoding, greedy, one answer
 per question. Apart from the perception scores, `--transcribe` questions (another seed) ask for one scene's list
 written in the prompt (`transcribe`: copying, not seeing): object F1 and how often the list has the written length.
-Also plots the pretraining validation curve recorded in the model folder.
+Also plots the pretraining validation curve recorded in the model folder (the shipped base's: the docs' figure
+docs/images/base_perception_curve.png; any other model's: OUT/perception_curve.png).
 
 Usage:
     python benchmarks/bench_perception.py                               # 600 questions, ~10 CPU minutes
@@ -25,6 +26,8 @@ from pathlib import Path
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 BENCH_SEED = 2_000_003  # training uses seed 0 and validation seed 1,000,003: never these examples
+SHIPPED_BASE = "checkpoints/tiny_vlm_base"
+SHIPPED_CURVE = "docs/images/base_perception_curve.png"  # its figure in the docs
 
 
 def plot_curve(curve: list[dict], out: Path) -> Path | None:
@@ -53,9 +56,17 @@ def plot_curve(curve: list[dict], out: Path) -> Path | None:
     return out
 
 
+def curve_path(model: str, out: str) -> str:
+    """Where the training curve goes by default: the docs' figure for the shipped base, else under `out` (a pilot
+    model's curve never replaces the shipped base's figure)."""
+    if Path(model).resolve() == Path(SHIPPED_BASE).resolve():
+        return SHIPPED_CURVE
+    return str(Path(out) / "perception_curve.png")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--model", default=SHIPPED_BASE)
     ap.add_argument("--n", type=int, default=600, help="questions (>= 500 held-out images by default)")
     ap.add_argument("--transcribe", type=int, default=100, help="transcribe questions, scored apart (0: none)")
     ap.add_argument("--seed", type=int, default=BENCH_SEED)
@@ -66,8 +77,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--write-card", action="store_true", help="write perception.json into the model folder "
                     "and re-render its model card")
-    ap.add_argument("--plot", default="docs/images/base_perception_curve.png")
+    ap.add_argument("--plot", default=None, help="the training curve's PNG (default: the docs' figure for the "
+                    "shipped base, OUT/perception_curve.png for any other model, so a pilot never replaces it)")
     args = ap.parse_args()
+    args.plot = args.plot or curve_path(args.model, args.out)
 
     import torch
 
