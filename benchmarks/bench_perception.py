@@ -59,7 +59,9 @@ def plot_curve(curve: list[dict], out: Path) -> Path | None:
 def curve_path(model: str, out: str) -> str:
     """Where the training curve goes by default: the docs' figure for the shipped base, else under `out` (a pilot
     model's curve never replaces the shipped base's figure)."""
-    if Path(model).resolve() == Path(SHIPPED_BASE).resolve():
+    from degusta_learn.shipped import BASE_DIR
+
+    if Path(model).resolve() == BASE_DIR:
         return SHIPPED_CURVE
     return str(Path(out) / "perception_curve.png")
 

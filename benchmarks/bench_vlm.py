@@ -7,7 +7,8 @@ same steps (`lora.mode=full`), and the heuristic baselines and the oracle. Print
 (object accuracy, Kabsch RMSD, set RMSD, count error, objects per answer, few-matched share), the paired
 bootstrap tests the issue asks for (fine-tuned vs population_mean on Kabsch RMSD, fine-tuned minus
 zero-shot), the ratio to copy_nearest, and plots both runs' learning curves (validation RMSD, set
-RMSD and parse rate against steps).
+RMSD and parse rate against steps: docs/images/vlm_learning_curve.png for the documented run, OUT/learning_curve.png
+for a run with another base, fewer episodes or overrides).
 
 Usage:
     python benchmarks/bench_vlm.py                         # ~35 CPU minutes: 2 fine-tunings + 3 x 200 answers
@@ -80,6 +81,16 @@ def run_name(mode: str, seed: int) -> str:
     return f"tiny_vlm_{mode}" if seed == 0 else f"tiny_vlm_{mode}_s{seed}"
 
 
+def curve_path(args) -> str:
+    """Where the learning curve goes by default: the docs' figure for the documented run (the shipped base, all test
+    episodes, no config overrides), else under --out (a pilot's curve never replaces the docs' figure)."""
+    from degusta_learn.shipped import BASE_DIR
+
+    documented = (Path(args.base).resolve() == BASE_DIR and args.episodes is None
+                  and not args.overrides and not args.predict_overrides)
+    return "docs/images/vlm_learning_curve.png" if documented else str(Path(args.out) / "learning_curve.png")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dataset", default="data/naturalistic")
@@ -89,7 +100,8 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", default=["lora", "full"], choices=["lora", "full"])
     ap.add_argument("--full-lr", type=float, default=5e-4, help="learning rate of full fine-tuning")
     ap.add_argument("--reuse", action="store_true", help="keep finished fine-tuning runs and prediction files")
-    ap.add_argument("--plot", default="docs/images/vlm_learning_curve.png")
+    ap.add_argument("--plot", default=None, help="the learning curve's PNG (default: the docs' figure for a run of "
+                    "the shipped base with no overrides, OUT/learning_curve.png for any other run)")
     ap.add_argument("--val-every", type=int, default=29,
                     help="fine-tuning steps between validations (the learning curve's points; 29: three an epoch)")
     ap.add_argument("--predict-set", dest="predict_overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -103,6 +115,7 @@ def main() -> None:
         ap.error("--seeds: distinct integers >= 0")
     if any(o.split("=")[0].strip() == "trainer.seed" for o in args.overrides):
         ap.error("--set trainer.seed: give training seeds with --seeds")
+    args.plot = args.plot or curve_path(args)
 
     import numpy as np
 
