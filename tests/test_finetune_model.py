@@ -75,6 +75,15 @@ def test_unloadable_model_id_fails_fast_naming_the_key(tmp_path):
         load_vlm(str(tmp_path / "empty"))
 
 
+def test_a_relative_model_path_not_found_says_where_it_was_looked_for(tmp_path, monkeypatch):
+    # `checkpoints/tiny_vlm_base` run from another folder: one slash reads as a hub id; say the folder too
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(DegustaError, match=r"backend.model: 'checkpoints/tiny_vlm_base' is neither .*as a folder it "
+                                           r"would be .*checkpoints/tiny_vlm_base: a relative path is read from the "
+                                           r"current directory"):
+        load_vlm("checkpoints/tiny_vlm_base", key="backend.model")
+
+
 def test_adapter_folder_must_be_a_peft_adapter(tmp_path):
     with pytest.raises(DegustaError, match="adapter: .*adapter_config.json"):
         load_vlm(str(tiny_dir("idefics3")), adapter=str(tmp_path))

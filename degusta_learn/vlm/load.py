@@ -78,7 +78,8 @@ def check_model_source(model_id_or_path: str, key: str = "model") -> str:
         raise DegustaError(
             f"{key}: {model_id_or_path!r} is neither a local model folder nor in the local Hugging Face cache; "
             "nothing is downloaded here: fetch it first on a machine with network "
-            f"(`huggingface-cli download {model_id_or_path}`) or give a local folder")
+            f"(`huggingface-cli download {model_id_or_path}`) or give a local folder (as a folder it would be "
+            f"{path.absolute()}: a relative path is read from the current directory)")
     return model_id_or_path
 
 
