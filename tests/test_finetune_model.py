@@ -12,7 +12,7 @@ from PIL import Image
 from degusta_learn.errors import DegustaError
 from degusta_learn.render.grid import Grid
 from degusta_learn.vlm.inputs import check_grid_resolution, ChatFormat, set_image_budget, tokens_per_image
-from degusta_learn.vlm.load import load_vlm
+from degusta_learn.vlm.load import load_vlm, quiet_peft
 
 
 @pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
@@ -87,3 +87,33 @@ def test_a_relative_model_path_not_found_says_where_it_was_looked_for(tmp_path, 
 def test_adapter_folder_must_be_a_peft_adapter(tmp_path):
     with pytest.raises(DegustaError, match="adapter: .*adapter_config.json"):
         load_vlm(str(tiny_dir("idefics3")), adapter=str(tmp_path))
+
+
+def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_path):
+    import json
+    import warnings
+
+    import peft
+
+    model, _ = load("idefics3")
+    with quiet_peft():
+        lora = peft.get_peft_model(model, peft.LoraConfig(r=2, target_modules=["q_proj"], task_type="CAUSAL_LM"))
+    good = tmp_path / "good"
+    lora.save_pretrained(str(good))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)  # peft's deprecated-attribute warning is silenced
+        load_vlm(str(tiny_dir("idefics3")), adapter=str(good), key="backend.model")
+
+    corrupt = tmp_path / "corrupt"
+    corrupt.mkdir()
+    (corrupt / "adapter_config.json").write_text("{")
+    with pytest.raises(DegustaError, match=rf"^backend.adapter: cannot load the adapter in {corrupt} onto this "
+                                           r"model: JSONDecodeError"):
+        load_vlm(str(tiny_dir("idefics3")), adapter=str(corrupt), key="backend.model")
+
+    foreign = tmp_path / "foreign"  # an adapter of a model whose layers have other names
+    foreign.mkdir()
+    config = json.loads((good / "adapter_config.json").read_text())
+    (foreign / "adapter_config.json").write_text(json.dumps({**config, "target_modules": ["no_such_proj"]}))
+    with pytest.raises(DegustaError, match=rf"^adapter: cannot load the adapter in {foreign} onto this model"):
+        load_vlm(str(tiny_dir("idefics3")), adapter=str(foreign))

@@ -116,7 +116,10 @@ def apply_lora(model, cfg: LoraConfig):
         model = peft.prepare_model_for_kbit_training(model, use_gradient_checkpointing=False)
     pc = peft.LoraConfig(r=cfg.r, lora_alpha=cfg.alpha, lora_dropout=cfg.dropout, target_modules=targets,
                          bias="none", task_type="CAUSAL_LM")
-    return peft.get_peft_model(model, pc)
+    from degusta_learn.vlm.load import quiet_peft
+
+    with quiet_peft():
+        return peft.get_peft_model(model, pc)
 
 
 def _is_vision(model, name: str) -> bool:

@@ -12,7 +12,9 @@ Usage:
 
 from __future__ import annotations
 
+import contextlib
 import os
+import warnings
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
@@ -136,7 +138,8 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
         raise DegustaError(f"{key}: {model_id_or_path!r}: its tokenizer has {n_vocab} tokens but the model embeds "
                            f"only {emb.num_embeddings}; the processor files belong to another model")
     if adapter:
-        model = load_adapter(model, adapter, trainable=trainable_adapter)
+        adapter_key = f"{key.rsplit('.', 1)[0]}.adapter" if "." in key else "adapter"  # backend.model -> backend.adapter
+        model = load_adapter(model, adapter, trainable=trainable_adapter, key=adapter_key)
     if quantization_config is None:
         model = model.to(device)
     return model.eval(), processor
@@ -147,12 +150,26 @@ def _first_line(e: Exception) -> str:
     return f"{type(e).__name__}: {text[0] if text else ''}"[:400]
 
 
-def load_adapter(model, adapter: str | Path, trainable: bool = False):
-    """Wrap `model` with the peft adapter saved in `adapter` (plain `PeftModel.from_pretrained`)."""
+@contextlib.contextmanager
+def quiet_peft():
+    """Silence the FutureWarning peft's PeftModel constructor triggers in transformers (it reads the deprecated
+    `is_gradient_checkpointing`): not the user's to act on, and it printed on every adapter load."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"`is_gradient_checkpointing` is deprecated", category=FutureWarning)
+        yield
+
+
+def load_adapter(model, adapter: str | Path, trainable: bool = False, key: str = "adapter"):
+    """Wrap `model` with the peft adapter saved in `adapter` (plain `PeftModel.from_pretrained`); a folder that
+    is not one, a corrupt file or an adapter of another model is a DegustaError naming `key` and the folder."""
     from peft import PeftModel
 
     path = Path(adapter)
     if not (path / "adapter_config.json").is_file():
-        raise DegustaError(f"adapter: {path} has no adapter_config.json (expected a folder written by "
+        raise DegustaError(f"{key}: {path} has no adapter_config.json (expected a folder written by "
                            "PeftModel.save_pretrained, e.g. checkpoints/<run>/adapter)")
-    return PeftModel.from_pretrained(model, str(path), is_trainable=trainable)
+    try:
+        with quiet_peft():
+            return PeftModel.from_pretrained(model, str(path), is_trainable=trainable)
+    except Exception as e:  # a corrupt file, or an adapter of another model: whatever peft raises, one line
+        raise DegustaError(f"{key}: cannot load the adapter in {path} onto this model: {_first_line(e)}") from None
