@@ -1,0 +1,142 @@
+"""Sampled answers, combined three ways: does sampling fix a fine-tune's short lists? (docs/tiny_base.md point 35)
+
+Reads the answers a sampled `degusta predict` run stored (`n` > 1: each prediction's `diagnostics.responses`)
+and scores three ways of turning them into one plan, each paired against a greedy run of the same model on the
+same episodes and against `population_mean`:
+
+- **steps**: the paper's aggregation, what predict wrote (`prompting.aggregate.aggregate`: the mode length,
+  per step the mode type and id);
+- **votes**: objects ranked by how many answers name them (ties: the earlier mean step), as many as the median
+  answer's length, each at the weighted mean of its cells over those answers, ordered by their mean step;
+- **greedy + votes**: the greedy answer's objects and places, lengthened to the sampled answers' median length by
+  the best-voted objects it lacks (never shortened): the greedy answer's places, the samples' count.
+
+A research script for one question (can a decoding-side length fix the count error without losing Kabsch RMSD?),
+not a predict option: point 35 records why none is one.
+
+Usage:
+    degusta predict --config configs/predict_hf_base_finetuned.yaml --set backend.adapter=RUN/adapter \\
+        --set n=5 --set temperature=0.5 --set episodes=RUN/episodes.jsonl --set out=OUT/sampled.jsonl
+    python benchmarks/reaggregate.py --dataset data/naturalistic --episodes RUN/episodes.jsonl \\
+        --greedy RUN/predictions/tiny_vlm_lora.jsonl --sampled OUT/sampled.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections import defaultdict
+
+import numpy as np
+
+METRICS = ("object_accuracy", "rmsd", "set_rmsd", "count_error", "n_pred")
+
+
+def parsed_answers(prediction, catalog, grid) -> list[list]:
+    """The items of each stored answer that parses (an item naming an object again is dropped, as predict does)."""
+    from degusta_learn.prompting.answers import AnswerParseError, read_answer
+
+    out = []
+    for text in (prediction.diagnostics or {}).get("responses") or []:
+        if not isinstance(text, str):  # a failed sample
+            continue
+        try:
+            out.append(read_answer(text, "grid", catalog, grid).items)
+        except AnswerParseError:
+            continue
+    return out
+
+
+def voted(answers: list[list]) -> tuple[dict[int, list], list[int]]:
+    """id -> [(step, item)] over the answers, and the ids by decreasing votes (ties: the earlier mean step)."""
+    votes: dict[int, list] = defaultdict(list)
+    for items in answers:
+        for step, it in enumerate(items):
+            votes[it.id].append((step, it))
+    ranked = sorted(votes, key=lambda i: (-len(votes[i]), np.mean([s for s, _ in votes[i]])))
+    return votes, ranked
+
+
+def placed(oid: int, votes: dict[int, list], grid):
+    from degusta_learn.render.grid import circular_mean, direction_to_rotation
+    from degusta_learn.scene import Placement
+
+    items = [it for _, it in votes[oid]]
+    x, y = grid.decode_weighted([it.cells for it in items])
+    rotation = circular_mean([direction_to_rotation(it.direction) for it in items]) % 360.0
+    return Placement(object=int(oid), x=float(x), y=float(y), rotation=float(rotation))
+
+
+def by_votes(answers: list[list], grid) -> list:
+    if not answers:
+        return []
+    votes, ranked = voted(answers)
+    length = int(round(np.median([len(a) for a in answers])))
+    chosen = sorted(ranked[:length], key=lambda i: np.mean([s for s, _ in votes[i]]))
+    return [placed(i, votes, grid) for i in chosen]
+
+
+def greedy_plus_votes(greedy: list, answers: list[list], grid) -> list:
+    if not answers:
+        return list(greedy)
+    votes, ranked = voted(answers)
+    length = int(round(np.median([len(a) for a in answers])))
+    have = {p.object for p in greedy}
+    extra = [i for i in ranked if i not in have][: max(0, length - len(greedy))]
+    return list(greedy) + [placed(i, votes, grid) for i in extra]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dataset", required=True)
+    ap.add_argument("--episodes", required=True, help="the episodes both runs answered (bench_vlm's episodes.jsonl)")
+    ap.add_argument("--greedy", required=True, help="predictions of the model decoded greedily (n 1)")
+    ap.add_argument("--sampled", required=True, help="predictions of the same model with n > 1 sampled answers")
+    ap.add_argument("--rows", type=int, default=8, help="grid rows (the answers' grid)")
+    ap.add_argument("--cols", type=int, default=8)
+    args = ap.parse_args()
+
+    from degusta_learn.methods import get_method
+    from degusta_learn.metrics import paired_bootstrap, score_many
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import load_dataset, read_episodes, read_predictions
+
+    ds, grid = load_dataset(args.dataset), Grid(args.rows, args.cols)
+    episodes = read_episodes(args.episodes)
+    order = [e.id for e in episodes]
+    greedy = {p.episode: p for p in read_predictions(args.greedy, ds.catalog)}
+    sampled = {p.episode: p for p in read_predictions(args.sampled, ds.catalog)}
+    missing = [i for i in order if i not in greedy or i not in sampled]
+    if missing:
+        raise SystemExit(f"error: {len(missing)} episodes of {args.episodes} lack a prediction (first: {missing[0]})")
+    spec = get_method("population_mean")
+    pop = {p.episode: p for p in spec.run(spec.config_cls(method="population_mean", dataset=args.dataset, out="",
+                                                          split="test"), ds, episodes)}
+    answers = {i: parsed_answers(sampled[i], ds.catalog, grid) for i in order}
+    rows = {
+        "greedy (n 1)": [greedy[i] for i in order],
+        "steps (the paper's, as predicted)": [sampled[i] for i in order],
+        "votes": [dataclasses.replace(sampled[i], placements=by_votes(answers[i], grid)) for i in order],
+        "greedy + votes": [dataclasses.replace(greedy[i], placements=greedy_plus_votes(
+            greedy[i].placements, answers[i], grid)) for i in order],
+        "population_mean": [pop[i] for i in order],
+    }
+    gts = [ds.arrangement(e.participant, e.target) for e in episodes]
+    cols = {name: {k: np.array([getattr(s, k) for s in score_many(ds.catalog, gts, preds)], float) for k in METRICS}
+            for name, preds in rows.items()}
+    print(f"\n{len(order)} episodes; sampled answers that parse, per episode: "
+          f"{np.mean([len(a) for a in answers.values()]):.2f}\n")
+    print("| decoding | object accuracy | Kabsch RMSD (paper) | set RMSD | count error | objects / answer | "
+          "vs greedy: object acc., count, set RMSD (p) | vs population_mean: Kabsch, set RMSD (p) |")
+    print("|---|---|---|---|---|---|---|---|")
+    fmt = lambda t: f"{t['diff']:+.3f} (p {t['p_value']:.3f})"  # noqa: E731
+    for name, c in cols.items():
+        g, p = cols["greedy (n 1)"], cols["population_mean"]
+        vs_greedy = ", ".join(fmt(paired_bootstrap(c[k], g[k])) for k in ("object_accuracy", "count_error", "set_rmsd"))
+        vs_pop = ", ".join(fmt(paired_bootstrap(c[k], p[k])) for k in ("rmsd", "set_rmsd"))
+        means = " | ".join(f"{np.nanmean(c[k]):.3f}" if k != "n_pred" else f"{np.nanmean(c[k]):.2f}" for k in METRICS)
+        print(f"| {name} | {means} | {vs_greedy} | {vs_pop} |")
+
+
+if __name__ == "__main__":
+    main()
