@@ -125,7 +125,17 @@ def main() -> None:
     cols = {name: {k: np.array([getattr(s, k) for s in score_many(ds.catalog, gts, preds)], float) for k in METRICS}
             for name, preds in rows.items()}
     print(f"\n{len(order)} episodes; sampled answers that parse, per episode: "
-          f"{np.mean([len(a) for a in answers.values()]):.2f}\n")
+          f"{np.mean([len(a) for a in answers.values()]):.2f}")
+    truth = np.array([len(gt.placements) for gt in gts], float)
+    contexts = np.array([np.median([len(ds.arrangement(e.participant, t).placements) for t in e.context])
+                         for e in episodes], float)
+    lengths = {"greedy answer": np.array([len(greedy[i].placements) for i in order], float),
+               "sampled answers' median": np.array([np.median([len(a) for a in answers[i]]) if answers[i] else 0
+                                                    for i in order], float)}
+    for name, n in lengths.items():  # does the length follow the person's count? (the contexts' median: a prior)
+        print(f"length of the {name}: mean {n.mean():.2f} (truth {truth.mean():.2f}), correlation with the truth's "
+              f"count {np.corrcoef(n, truth)[0, 1]:.2f}, with the contexts' median count {np.corrcoef(n, contexts)[0, 1]:.2f}")
+    print(f"the contexts' median count itself: correlation with the truth's {np.corrcoef(contexts, truth)[0, 1]:.2f}\n")
     print("| decoding | object accuracy | Kabsch RMSD (paper) | set RMSD | count error | objects / answer | "
           "vs greedy: object acc., count, set RMSD (p) | vs population_mean: Kabsch, set RMSD (p) |")
     print("|---|---|---|---|---|---|---|---|")
