@@ -92,6 +92,8 @@ def main() -> None:
     ap.add_argument("--episodes", required=True, help="the episodes both runs answered (bench_vlm's episodes.jsonl)")
     ap.add_argument("--greedy", required=True, help="predictions of the model decoded greedily (n 1)")
     ap.add_argument("--sampled", required=True, help="predictions of the same model with n > 1 sampled answers")
+    ap.add_argument("--extra", action="append", default=[], metavar="NAME=PATH",
+                    help="another predictions file of the same episodes, scored as a row (repeatable)")
     ap.add_argument("--rows", type=int, default=8, help="grid rows (the answers' grid)")
     ap.add_argument("--cols", type=int, default=8)
     args = ap.parse_args()
@@ -119,8 +121,14 @@ def main() -> None:
         "votes": [dataclasses.replace(sampled[i], placements=by_votes(answers[i], grid)) for i in order],
         "greedy + votes": [dataclasses.replace(greedy[i], placements=greedy_plus_votes(
             greedy[i].placements, answers[i], grid)) for i in order],
-        "population_mean": [pop[i] for i in order],
     }
+    for extra in args.extra:
+        name, _, path = extra.partition("=")
+        by = {p.episode: p for p in read_predictions(path, ds.catalog)}
+        if any(i not in by for i in order):
+            raise SystemExit(f"error: {path} lacks predictions of some of the episodes")
+        rows[name] = [by[i] for i in order]
+    rows["population_mean"] = [pop[i] for i in order]
     gts = [ds.arrangement(e.participant, e.target) for e in episodes]
     cols = {name: {k: np.array([getattr(s, k) for s in score_many(ds.catalog, gts, preds)], float) for k in METRICS}
             for name, preds in rows.items()}
@@ -132,10 +140,13 @@ def main() -> None:
     lengths = {"greedy answer": np.array([len(greedy[i].placements) for i in order], float),
                "sampled answers' median": np.array([np.median([len(a) for a in answers[i]]) if answers[i] else 0
                                                     for i in order], float)}
+    def r(a, b) -> float:  # nan where one side is constant (a few episodes)
+        return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan")
+
     for name, n in lengths.items():  # does the length follow the person's count? (the contexts' median: a prior)
         print(f"length of the {name}: mean {n.mean():.2f} (truth {truth.mean():.2f}), correlation with the truth's "
-              f"count {np.corrcoef(n, truth)[0, 1]:.2f}, with the contexts' median count {np.corrcoef(n, contexts)[0, 1]:.2f}")
-    print(f"the contexts' median count itself: correlation with the truth's {np.corrcoef(contexts, truth)[0, 1]:.2f}\n")
+              f"count {r(n, truth):.2f}, with the contexts' median count {r(n, contexts):.2f}")
+    print(f"the contexts' median count itself: correlation with the truth's {r(contexts, truth):.2f}\n")
     print("| decoding | object accuracy | Kabsch RMSD (paper) | set RMSD | count error | objects / answer | "
           "vs greedy: object acc., count, set RMSD (p) | vs population_mean: Kabsch, set RMSD (p) |")
     print("|---|---|---|---|---|---|---|---|")

@@ -60,10 +60,12 @@ class AnswerGrammar:
     """Character-level automaton of valid answers for one catalog and grid."""
 
     def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int | None = None,
-                 distinct: bool = True):
+                 distinct: bool = True, length: int | None = None):
         """`max_cells` caps every type's cell count further (None: each type's footprint bound only).
         `distinct`: an id may be placed once (false: an item may name an object again, and the reader drops it:
-        `allowing_repeats`)."""
+        `allowing_repeats`). `length`: the list closes once it names this many distinct objects, and not before
+        (unless the token budget closes it, `closing`, or `max_items` items are written): a decoding whose count
+        is decided elsewhere (`benchmarks/fixed_length.py`)."""
         if kind not in _ITEMS:
             raise DegustaError(f"answer kind: expected one of {list(_ITEMS)}, got {kind!r}")
         self.kind, self.parts = kind, _ITEMS[kind]
@@ -85,6 +87,9 @@ class AnswerGrammar:
             self.max_cells = max(self.max_cells_of.values(), default=0)
             """The most cells any object may list (the largest per-type bound)."""
         self.distinct = distinct
+        if length is not None and (isinstance(length, bool) or not isinstance(length, int) or length < 1):
+            raise DegustaError(f"answer grammar length: expected an integer >= 1, got {length!r}")
+        self.length = length
         self._prefixes: dict = {}
         self._cell_prefixes: dict[int, set[str]] = {}
         self._repeating: AnswerGrammar | None = None
@@ -145,9 +150,10 @@ class AnswerGrammar:
                 return ("item", 0, 0, "", None, (), n)
             return ("pre", 0, off + 1, "", None, (), n) if ch in _WS and off < _MAX_WS else None
         if phase == "next":
-            if ch == "]":
+            short = self.length is not None and len(set(n)) < self.length  # distinct objects: repeats are dropped
+            if ch == "]" and (not short or closing or len(n) >= self.max_items):
                 return ("done", 0, 0, "", None, (), n)
-            if ch == "," and not closing and len(n) < self.max_items:
+            if ch == "," and not closing and len(n) < self.max_items and (self.length is None or short):
                 return ("sep", 0, 1, "", None, (), n)
             return None
         if phase == "sep":  # ", " then the item's "{"
