@@ -35,6 +35,10 @@ def main() -> None:
     ap.add_argument("--greedy", required=True, help="the same fine-tune's greedy predictions (n 1)")
     ap.add_argument("--sampled", required=True, help="its predictions with n > 1 sampled answers (the lengths)")
     ap.add_argument("--out", required=True, help="where the fixed-length predictions go (reused if present)")
+    ap.add_argument("--repeats", choices=("forbid", "skip"), default="forbid",
+                    help="forbid: the grammar refuses an object named again, so the items added to reach the length "
+                         "are new objects (the model's best unused id); skip: the backend's decoding (repeats "
+                         "written and dropped: a model held past its own end loops on them)")
     args = ap.parse_args()
 
     import reaggregate
@@ -62,7 +66,10 @@ def main() -> None:
 
         kind = answer_kind(prompt.method)
         length = lengths.get(prompt.episode)
-        self._grammars[kind] = AnswerGrammar(kind, self.catalog, self.grid, length=length)
+        grammar = AnswerGrammar(kind, self.catalog, self.grid, length=length)
+        if args.repeats == "forbid":
+            grammar.allowing_repeats = lambda: grammar  # generate's skip then keeps the distinct grammar
+        self._grammars[kind] = grammar
         return plain(self, prompt, n, temperature, max_tokens, seed)
 
     if not Path(args.out).is_file():
