@@ -20,8 +20,6 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
 os.environ["HF_HUB_OFFLINE"] = "1"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -56,7 +54,7 @@ def main() -> None:
     for episode, prediction in sampled.items():
         answers = reaggregate.parsed_answers(prediction, ds.catalog, Grid(8, 8))
         if answers:
-            lengths[episode] = max(1, int(round(np.median([len(a) for a in answers]))))
+            lengths[episode] = reaggregate.median_length(answers)
 
     plain = HFBackend.complete
 
@@ -74,11 +72,13 @@ def main() -> None:
 
     if not Path(args.out).is_file():
         HFBackend.complete = complete
-        run_predict("configs/predict_hf_base_finetuned.yaml",
-                    [f"dataset={args.dataset}", f"episodes={args.episodes}", f"out={args.out}",
-                     f"backend.model={args.base or BASE_DIR}", f"backend.adapter={args.adapter}", "n=1",
-                     "temperature=0"])
-        HFBackend.complete = plain
+        try:
+            run_predict("configs/predict_hf_base_finetuned.yaml",
+                        [f"dataset={args.dataset}", f"episodes={args.episodes}", f"out={args.out}",
+                         f"backend.model={args.base or BASE_DIR}", f"backend.adapter={args.adapter}", "n=1",
+                         "temperature=0"])
+        finally:
+            HFBackend.complete = plain
     sys.argv = [sys.argv[0], "--dataset", args.dataset, "--episodes", args.episodes, "--greedy", args.greedy,
                 "--sampled", args.sampled, "--extra", f"fixed length={args.out}"]
     reaggregate.main()

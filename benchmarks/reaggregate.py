@@ -47,6 +47,11 @@ def parsed_answers(prediction, catalog, grid) -> list[list]:
     return out
 
 
+def median_length(answers: list[list]) -> int:
+    """The median of the answers' lengths, rounded (the samples' count; at least 1)."""
+    return max(1, int(round(np.median([len(a) for a in answers]))))
+
+
 def voted(answers: list[list]) -> tuple[dict[int, list], list[int]]:
     """id -> [(step, item)] over the answers, and the ids by decreasing votes (ties: the earlier mean step)."""
     votes: dict[int, list] = defaultdict(list)
@@ -71,7 +76,7 @@ def by_votes(answers: list[list], grid) -> list:
     if not answers:
         return []
     votes, ranked = voted(answers)
-    length = int(round(np.median([len(a) for a in answers])))
+    length = median_length(answers)
     chosen = sorted(ranked[:length], key=lambda i: np.mean([s for s, _ in votes[i]]))
     return [placed(i, votes, grid) for i in chosen]
 
@@ -80,7 +85,7 @@ def greedy_plus_votes(greedy: list, answers: list[list], grid) -> list:
     if not answers:
         return list(greedy)
     votes, ranked = voted(answers)
-    length = int(round(np.median([len(a) for a in answers])))
+    length = median_length(answers)
     have = {p.object for p in greedy}
     extra = [i for i in ranked if i not in have][: max(0, length - len(greedy))]
     return list(greedy) + [placed(i, votes, grid) for i in extra]
@@ -140,6 +145,7 @@ def main() -> None:
     lengths = {"greedy answer": np.array([len(greedy[i].placements) for i in order], float),
                "sampled answers' median": np.array([np.median([len(a) for a in answers[i]]) if answers[i] else 0
                                                     for i in order], float)}
+
     def r(a, b) -> float:  # nan where one side is constant (a few episodes)
         return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan")
 
