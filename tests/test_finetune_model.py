@@ -89,6 +89,19 @@ def test_adapter_folder_must_be_a_peft_adapter(tmp_path):
         load_vlm(str(tiny_dir("idefics3")), adapter=str(tmp_path))
 
 
+def test_device_and_dtype_errors_name_the_configs_own_keys():
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("needs a machine without a CUDA device")
+    with pytest.raises(DegustaError, match=r"^backend.device: 'cuda' requested but no CUDA device is visible"):
+        load_vlm(str(tiny_dir("idefics3")), device="cuda", key="backend.model")
+    with pytest.raises(DegustaError, match=r"^backend.dtype: expected one of"):
+        load_vlm(str(tiny_dir("idefics3")), dtype="fp8", key="backend.model")
+    with pytest.raises(DegustaError, match=r"^device: 'cuda:1' requested"):
+        load_vlm(str(tiny_dir("idefics3")), device="cuda:1")
+
+
 def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_path):
     import json
     import warnings

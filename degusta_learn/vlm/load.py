@@ -35,23 +35,23 @@ def offline() -> None:
         pass
 
 
-def resolve_device(device: str = "auto") -> str:
-    """'auto' -> 'cuda' when a GPU is visible, else 'cpu'; other values pass through (checked)."""
+def resolve_device(device: str = "auto", key: str = "device") -> str:
+    """'auto' -> 'cuda' when a GPU is visible, else 'cpu'; other values pass through (checked; errors name `key`)."""
     import torch
 
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise DegustaError(f"device: {device!r} requested but no CUDA device is visible (use 'cpu' or 'auto')")
+        raise DegustaError(f"{key}: {device!r} requested but no CUDA device is visible (use 'cpu' or 'auto')")
     return device
 
 
-def resolve_dtype(dtype: str, device: str):
+def resolve_dtype(dtype: str, device: str, key: str = "dtype"):
     """'auto' -> bfloat16 on a bf16-capable GPU, float32 on CPU."""
     import torch
 
     if dtype not in DTYPES:
-        raise DegustaError(f"dtype: expected one of {list(DTYPES)}, got {dtype!r}")
+        raise DegustaError(f"{key}: expected one of {list(DTYPES)}, got {dtype!r}")
     if dtype == "auto":
         if device.startswith("cuda") and torch.cuda.is_bf16_supported():
             return torch.bfloat16
@@ -121,8 +121,9 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     from transformers import AutoModelForImageTextToText
 
     source = check_model_source(model_id_or_path, key)
-    device = resolve_device(device)
-    torch_dtype = resolve_dtype(dtype, device)
+    section = key.rpartition(".")[0]  # backend.model -> backend.device, backend.dtype
+    device = resolve_device(device, f"{section}.device" if section else "device")
+    torch_dtype = resolve_dtype(dtype, device, f"{section}.dtype" if section else "dtype")
     processor = load_processor(source, key)
     extra = {}
     if quantization_config is not None:
