@@ -783,6 +783,9 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
     seed_everything(cfg.seed)
     with _user_errors(run, created), warnings.catch_warnings():  # the run folder holds config.yaml by design
         warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+        # torch >= 2.10 under DDP, once a run (seen on an H100, configs/learned_gpu.yaml): DDP keeps a reference
+        # to the gradient-accumulation node it was built with; the run uses one stream, nothing to act on
+        warnings.filterwarnings("ignore", message=r"The AccumulateGrad node's stream does not match")
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
     if not trainer.interrupted:  # last.ckpt is written at each validation; also keep the steps after the last one
         trainer.save_checkpoint(run / LAST, weights_only=False)  # full state (optimizer too), to resume
