@@ -74,18 +74,24 @@ def config_path(name: str) -> Path:
 
 
 def overrides(name: str, replica: Path, data: Path, runs: Path, batch_size: int | None, new_tokens: int,
-              checkpointing: bool | None = None, run_name: str | None = None) -> list[str]:
+              checkpointing: bool | None = None, run_name: str | None = None, gpu: bool = False,
+              steps: int = 2) -> list[str]:
+    """The config's run, cut to `steps` optimizer steps of one batch and one validation generation. On the CPU in
+    fp32 (the CPU run); with `gpu`, the config's own dtype, precision and accelerator on one GPU, and the
+    validation generates a whole batch of episodes (its time per token is the one the configs estimate)."""
     from degusta_learn.config import load_config
     from degusta_learn.finetune.config import FinetuneConfig
 
     cfg = load_config(FinetuneConfig, config_path(name), [])
     bs = batch_size or cfg.data.batch_size
-    return [f"model.name={replica}", f"dataset={data}", "model.dtype=float32", "trainer.accelerator=cpu",
-            "trainer.devices=1", "trainer.strategy=auto", "trainer.precision=32-true", "trainer.max_steps=2",
-            "trainer.accumulate_grad_batches=1", "trainer.val_check_interval=1.0", "trainer.log_every_n_steps=1",
-            "trainer.progress_bar=false", f"trainer.run_dir={runs}", f"trainer.run_name={run_name or name}",
-            f"data.batch_size={bs}", f"data.max_train_episodes={2 * bs}", "data.val_episodes=1",
-            "data.num_workers=0", f"eval.max_new_tokens={new_tokens}", "eval.report_unconstrained=false"] + (
+    device = (["trainer.devices=1", "trainer.strategy=auto", f"data.val_episodes={bs}"] if gpu else
+              ["model.dtype=float32", "trainer.accelerator=cpu", "trainer.devices=1", "trainer.strategy=auto",
+               "trainer.precision=32-true", "data.val_episodes=1", "data.num_workers=0"])
+    return [f"model.name={replica}", f"dataset={data}"] + device + [
+            f"trainer.max_steps={steps}", "trainer.accumulate_grad_batches=1", "trainer.val_check_interval=1.0",
+            "trainer.log_every_n_steps=1", "trainer.progress_bar=false", f"trainer.run_dir={runs}",
+            f"trainer.run_name={run_name or name}", f"data.batch_size={bs}", f"data.max_train_episodes={steps * bs}",
+            f"eval.max_new_tokens={new_tokens}", "eval.report_unconstrained=false"] + (
             [] if checkpointing is None else [f"model.gradient_checkpointing={str(checkpointing).lower()}"])
 
 
@@ -128,7 +134,9 @@ def token_stats(name: str, over: list[str]) -> dict:
 
 
 def child(name: str, over: list[str], out_json: Path) -> None:
-    """One training run (2 steps + one constrained validation generation), measured; writes out_json."""
+    """One training run (its steps + one constrained validation generation), measured; writes out_json. On a GPU
+    also the allocator's peak per step and for the run (torch.cuda.max_memory_allocated) and the validation's
+    time (generation and scoring) per generated token."""
     import torch
 
     from degusta_learn.finetune import module as fm
@@ -136,27 +144,55 @@ def child(name: str, over: list[str], out_json: Path) -> None:
 
     torch.set_num_threads(max(1, os.cpu_count() or 1))
     sampler = PeakRSS()
-    marks: dict = {"rss_start": rss_bytes(), "steps": [], "rss_step_peaks": []}
+    marks: dict = {"rss_start": rss_bytes(), "steps": [], "rss_step_peaks": [], "cuda_step_peaks": [],
+                   "val_s": []}
+    cuda = torch.cuda.is_available() and "trainer.accelerator=cpu" not in over
+    if cuda:
+        marks["device"] = torch.cuda.get_device_name(0)
     orig_start = getattr(fm.FinetuneModule, "on_train_batch_start", None)
     orig_end = getattr(fm.FinetuneModule, "on_train_batch_end", None)
+    orig_val_start = getattr(fm.FinetuneModule, "on_validation_start", None)
+    orig_val_end = getattr(fm.FinetuneModule, "on_validation_end", None)
 
     def on_start(self, batch, batch_idx):
         if "rss_before_train" not in marks:
             marks["rss_before_train"] = rss_bytes()
             marks["params_total"] = sum(p.numel() for p in self.parameters())
             marks["params_trainable"] = sum(p.numel() for p in self.parameters() if p.requires_grad)
-            marks["batch_tokens"] = list(batch["input_ids"].shape)
+            marks["batch_tokens"] = []
+        marks["batch_tokens"].append(list(batch["input_ids"].shape))
         sampler.reset()
+        if cuda:
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
         marks["_t"] = time.perf_counter()
         return orig_start(self, batch, batch_idx) if orig_start else None
 
     def on_end(self, outputs, batch, batch_idx):
+        if cuda:
+            torch.cuda.synchronize()
+            marks["cuda_step_peaks"].append(torch.cuda.max_memory_allocated())
         marks["steps"].append(time.perf_counter() - marks.pop("_t"))
+        print(f"step {len(marks['steps'])}: {marks['steps'][-1]:.2f} s, batch {marks['batch_tokens'][-1]}"
+              + (f", allocated peak {marks['cuda_step_peaks'][-1] / GiB:.2f} GiB" if cuda else ""), flush=True)
         marks["rss_step_peaks"].append(max(sampler.peak, rss_bytes()))
         return orig_end(self, outputs, batch, batch_idx) if orig_end else None
 
+    def on_val_start(self):
+        marks["_v"] = time.perf_counter()
+        return orig_val_start(self) if orig_val_start else None
+
+    def on_val_end(self):
+        if cuda:
+            torch.cuda.synchronize()
+        marks["val_s"].append(time.perf_counter() - marks.pop("_v"))
+        print(f"validation: {marks['val_s'][-1]:.1f} s", flush=True)
+        return orig_val_end(self) if orig_val_end else None
+
     fm.FinetuneModule.on_train_batch_start = on_start
     fm.FinetuneModule.on_train_batch_end = on_end
+    fm.FinetuneModule.on_validation_start = on_val_start
+    fm.FinetuneModule.on_validation_end = on_val_end
     t0 = time.perf_counter()
     try:
         run_dir = run_train(config_path(name), over)
@@ -164,9 +200,13 @@ def child(name: str, over: list[str], out_json: Path) -> None:
         marks["metrics_tail"] = metrics[0].read_text().splitlines()[-3:] if metrics else []
     except Exception as e:  # keep what was measured (the steps) and say what failed
         marks["error"] = f"{type(e).__name__}: {e}"
+    marks.pop("_v", None)  # a validation that failed before its end
     marks["wall_s"] = time.perf_counter() - t0
     marks["rss_peak_sampled"] = sampler.stop()
     marks["ru_maxrss"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    if cuda:
+        marks["cuda_run_peak"] = torch.cuda.max_memory_allocated()  # since the last step's reset: validation too
+        marks["cuda_reserved_peak"] = torch.cuda.max_memory_reserved()
     out_json.write_text(json.dumps(marks, indent=1))
 
 
@@ -184,6 +224,9 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-train", action="store_true", help="token counts and dry runs only")
     ap.add_argument("--gradient-checkpointing", choices=["on", "off"], default=None,
                     help="override the config's model.gradient_checkpointing (results under NAME+gc / NAME-gc)")
+    ap.add_argument("--gpu", action="store_true",
+                    help="run the config as written (its dtype, precision, accelerator) on one GPU; results under NAME@gpu")
+    ap.add_argument("--steps", type=int, default=2, help="optimizer steps of the training run (default 2)")
     ap.add_argument("--child", nargs=2, metavar=("NAME", "JSON"), help=argparse.SUPPRESS)
     ap.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -202,10 +245,13 @@ def main(argv=None) -> int:
             build_replica(name, replica, reference_dir=ref)
             print(f"{name}: built in {time.perf_counter() - t:.0f} s", flush=True)
         gc = None if args.gradient_checkpointing is None else args.gradient_checkpointing == "on"
-        key = name + {None: "", True: "+gc", False: "-gc"}[gc]  # the results entry and the run's name
-        over = overrides(name, replica, args.data, args.out / "runs", args.batch_size, args.new_tokens, gc, key)
+        key = name + {None: "", True: "+gc", False: "-gc"}[gc] + ("@gpu" if args.gpu else "")  # entry and run name
+        over = overrides(name, replica, args.data, args.out / "runs", args.batch_size, args.new_tokens, gc, key,
+                         gpu=args.gpu, steps=args.steps)
         cached = results.get(key, {})
-        tokens = cached["tokens"] if cached.get("overrides") == over else token_stats(name, over)
+        # the whole training set's token counts take minutes of CPU: a GPU run leaves them to the CPU run's entry
+        tokens = (None if args.gpu else
+                  cached["tokens"] if cached.get("overrides") == over else token_stats(name, over))
         res = {"overrides": over, "tokens": tokens,
                "replica": json.loads((replica / "degusta_replica.json").read_text())}
         results[key] = res
@@ -227,23 +273,37 @@ def main(argv=None) -> int:
 def report(name: str, res: dict) -> None:
     tk = res["tokens"]
     print(f"\n== {name} ({res['replica']['tokenizer']})")
+    if tk:
+        report_tokens(tk)
+    tr = res.get("train")
+    if tr:
+        report_train(tr)
+
+
+def report_tokens(tk: dict) -> None:
     print("  tokens over {n} training examples (max / mean): image {i[max]} / {i[mean]}, other prompt {t[max]} / "
           "{t[mean]}, answer {a[max]} / {a[mean]}, total {T[max]} / {T[mean]}".format(
               n=tk["n_train"], i=tk["image"], t=tk["text"], a=tk["answer"], T=tk["total"]))
     for line in tk["dry_run_cpu_run"] + tk["dry_run_gpu_config"]:
         if "predicted memory" in line:
             print("  " + line.strip())
-    tr = res.get("train")
-    if tr:
-        if tr.get("error"):
-            print(f"  FAILED after {len(tr['steps'])} steps: {tr['error']}")
-        if "params_trainable" not in tr:  # failed before the first step: nothing else was measured
-            return
-        print(f"  params: {tr['params_trainable']:,} trainable of {tr['params_total']:,}; batch {tr['batch_tokens']}")
-        print(f"  seconds per step: {', '.join(f'{s:.1f}' for s in tr['steps'])}; wall {tr['wall_s']:.0f} s")
-        print(f"  RSS: start {tr['rss_start'] / GiB:.2f} GiB, before training {tr['rss_before_train'] / GiB:.2f} GiB, "
-              f"step peaks {', '.join(f'{r / GiB:.2f}' for r in tr['rss_step_peaks'])} GiB, run peak "
-              f"{tr['rss_peak_sampled'] / GiB:.2f} GiB (ru_maxrss {tr['ru_maxrss'] / GiB:.2f} GiB)")
+
+
+def report_train(tr: dict) -> None:
+    if tr.get("error"):
+        print(f"  FAILED after {len(tr['steps'])} steps: {tr['error']}")
+    if "params_trainable" not in tr:  # failed before the first step: nothing else was measured
+        return
+    print(f"  params: {tr['params_trainable']:,} trainable of {tr['params_total']:,}; batches {tr['batch_tokens']}")
+    print(f"  seconds per step: {', '.join(f'{s:.2f}' for s in tr['steps'])}; wall {tr['wall_s']:.0f} s")
+    print(f"  RSS: start {tr['rss_start'] / GiB:.2f} GiB, before training {tr['rss_before_train'] / GiB:.2f} GiB, "
+          f"step peaks {', '.join(f'{r / GiB:.2f}' for r in tr['rss_step_peaks'])} GiB, run peak "
+          f"{tr['rss_peak_sampled'] / GiB:.2f} GiB (ru_maxrss {tr['ru_maxrss'] / GiB:.2f} GiB)")
+    if tr.get("cuda_step_peaks"):
+        print(f"  {tr['device']}: allocated peak per step {', '.join(f'{b / GiB:.2f}' for b in tr['cuda_step_peaks'])} "
+              f"GiB; last step + validation {tr['cuda_run_peak'] / GiB:.2f} GiB (reserved {tr['cuda_reserved_peak'] / GiB:.2f})")
+    if tr.get("val_s"):
+        print(f"  validation (generate + score): {', '.join(f'{v:.1f}' for v in tr['val_s'])} s")
 
 
 if __name__ == "__main__":
