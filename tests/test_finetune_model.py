@@ -100,6 +100,8 @@ def test_device_and_dtype_errors_name_the_configs_own_keys():
         load_vlm(str(tiny_dir("idefics3")), dtype="fp8", key="backend.model")
     with pytest.raises(DegustaError, match=r"^device: 'cuda:1' requested"):
         load_vlm(str(tiny_dir("idefics3")), device="cuda:1")
+    with pytest.raises(DegustaError, match=r"^backend.device: 'tpu' is not a device"):  # was torch's traceback
+        load_vlm(str(tiny_dir("idefics3")), device="tpu", key="backend.model")
 
 
 def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_path):

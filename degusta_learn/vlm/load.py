@@ -17,6 +17,7 @@ import os
 import warnings
 from pathlib import Path
 
+from degusta_learn.devices import resolve_device
 from degusta_learn.errors import DegustaError
 
 DTYPES = ("auto", "float32", "bfloat16", "float16")
@@ -33,17 +34,6 @@ def offline() -> None:
         hf_logging.set_verbosity_error()
     except ImportError:  # pragma: no cover
         pass
-
-
-def resolve_device(device: str = "auto", key: str = "device") -> str:
-    """'auto' -> 'cuda' when a GPU is visible, else 'cpu'; other values pass through (checked; errors name `key`)."""
-    import torch
-
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise DegustaError(f"{key}: {device!r} requested but no CUDA device is visible (use 'cpu' or 'auto')")
-    return device
 
 
 def resolve_dtype(dtype: str, device: str, key: str = "dtype"):

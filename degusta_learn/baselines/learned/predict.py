@@ -118,9 +118,9 @@ def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list
 
 
 def _run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
-        raise DegustaError(f"device: {cfg.device!r} requested but no CUDA device is available (use device: cpu)")
-    model, hp = load_model(cfg.checkpoint, cfg.device)
+    from degusta_learn.devices import resolve_device
+
+    model, hp = load_model(cfg.checkpoint, resolve_device(cfg.device, "device"))
     model.vocab.check_catalog(ds.catalog, f"{cfg.dataset}/catalog.json")
     with torch.no_grad():
         return predict_episodes(model, ds, episodes, hp["population"], hp.get("min_objects", 1), cfg.batch_size,
