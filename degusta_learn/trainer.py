@@ -97,7 +97,8 @@ class TrainerConfig:
     num_nodes: int = bounded(1, 1, 100_000)
     """Machines of a multi-node run (launched by torchrun or SLURM `srun`; see docs/finetune.md)."""
     strategy: str = "auto"
-    """Lightning strategy: "auto", "ddp", "ddp_spawn", "fsdp", ... (multi-GPU needs no code change)."""
+    """Lightning strategy: "auto", "ddp", "ddp_fork", "fsdp", ... (multi-GPU needs no code change; the
+    "ddp_spawn" family is refused: it pickles the run)."""
     precision: str = "32-true"
     """"32-true", "bf16-mixed" (GPU), "16-mixed" (GPU)."""
     accumulate_grad_batches: int = bounded(1, 1, 10_000)
@@ -239,8 +240,12 @@ def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> 
 
         names = StrategyRegistry.available_strategies()
         if cfg.strategy not in names:
-            raise DegustaError(f"trainer.strategy: unknown strategy {cfg.strategy[:40]!r} (use auto, ddp, ddp_spawn, "
+            raise DegustaError(f"trainer.strategy: unknown strategy {cfg.strategy[:40]!r} (use auto, ddp, ddp_fork, "
                                f"fsdp, deepspeed, ...)")
+        if cfg.strategy.startswith("ddp_spawn"):  # was a PicklingError traceback from inside Lightning
+            raise DegustaError(f"trainer.strategy: {cfg.strategy!r} pickles the whole run into new processes, which "
+                               f"this harness does not support; use ddp (ranks started from the command line) "
+                               f"or ddp_fork")
         if (cfg.strategy.startswith("fsdp") or cfg.strategy.startswith("deepspeed")) and not on_gpu:
             raise DegustaError(f"trainer.strategy: {cfg.strategy!r} needs a GPU accelerator; use auto or ddp on CPU")
     _check_logger_packages(cfg)

@@ -94,6 +94,15 @@ def test_bad_trainer_config_names_the_key(data, message):
         from_dict(TrainerConfig, data)
 
 
+@pytest.mark.parametrize("strategy", ["ddp_spawn", "ddp_spawn_find_unused_parameters_true"])
+def test_spawn_strategies_are_refused_before_the_run(strategy):
+    """ddp_spawn pickles the run: it died inside Lightning with a PicklingError traceback."""
+    from degusta_learn.trainer import check_trainer
+
+    with pytest.raises(DegustaError, match=rf"^trainer.strategy: '{strategy}' pickles the whole run.*use ddp"):
+        check_trainer(from_dict(TrainerConfig, {"strategy": strategy, "accelerator": "cpu", "devices": 1}))
+
+
 def test_val_check_interval_keeps_int_and_float():
     assert from_dict(TrainerConfig, {"val_check_interval": 50}).val_check_interval == 50
     assert isinstance(from_dict(TrainerConfig, {"val_check_interval": 0.5}).val_check_interval, float)
