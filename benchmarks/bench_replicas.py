@@ -1,4 +1,5 @@
-"""Full-size replicas of the GPU fine-tuning configs, run for real on the CPU (opt-in; NOT run in CI).
+"""Full-size replicas of the GPU fine-tuning configs, run for real on the CPU, or with --gpu on one GPU as the config
+is written (opt-in; NOT run in CI; benchmarks/gpu_check.sh runs the --gpu form).
 
 Per replica (degusta_learn/vlm/replicas.py: published sizes, random weights, built offline):
   1. token budget over the WHOLE training set, exactly as `degusta train --dry-run` counts it (image / other
@@ -11,12 +12,17 @@ Per replica (degusta_learn/vlm/replicas.py: published sizes, random weights, bui
      validation generation), data.num_workers=0 (one process: its RSS is the whole run). Each training run
      is a fresh subprocess: peak RSS (a 20 ms sampling thread on /proc/self/status and getrusage's
      ru_maxrss) covers only that replica; seconds per step = on_train_batch_start -> on_train_batch_end.
+  With --gpu (a machine with a CUDA GPU): step 2 only, the config's own dtype, precision, accelerator and
+     workers, --steps steps, a validation that generates one batch; per step the allocator's peak
+     (torch.cuda.max_memory_allocated, synchronized), and the validation's seconds. Results under NAME@gpu.
 
 Usage (one replica at a time; Qwen2-VL-2B needs ~12+ GB and a long time on 2 cores):
     degusta data generate naturalistic --out /tmp/repl/data
     python benchmarks/bench_replicas.py --data /tmp/repl/data --out /tmp/repl \
         --reference ../shared/reference-models/SmolVLM-256M-Instruct smolvlm_256m smolvlm_500m
     python benchmarks/bench_replicas.py --data /tmp/repl/data --out /tmp/repl qwen2vl_2b --batch-size 1
+    python benchmarks/bench_replicas.py --gpu --steps 8 --data /tmp/repl/data --out /tmp/repl \
+        --reference ../shared/reference-models/SmolVLM-256M-Instruct smolvlm_256m      # on a GPU
 Writes <out>/results.json (appended per replica) and prints a table.
 """
 
@@ -135,8 +141,8 @@ def token_stats(name: str, over: list[str]) -> dict:
 
 def child(name: str, over: list[str], out_json: Path) -> None:
     """One training run (its steps + one constrained validation generation), measured; writes out_json. On a GPU
-    also the allocator's peak per step and for the run (torch.cuda.max_memory_allocated) and the validation's
-    time (generation and scoring) per generated token."""
+    also the allocator's peak per step and for the run (torch.cuda.max_memory_allocated); always the validation's
+    time (generation and scoring)."""
     import torch
 
     from degusta_learn.finetune import module as fm
