@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -161,8 +162,10 @@ def test_configs_list_into_a_closed_pipe_is_quiet():
 
 
 @pytest.mark.slow
-def test_quickstart_small_runs_from_a_non_editable_install(wheel, tmp_path):
-    """`pip install` of the wheel (not -e) into a fresh venv, then `degusta quickstart --small` elsewhere."""
+def test_quickstart_small_end_to_end_from_a_non_editable_install(wheel, tmp_path):
+    """The main job at a reduced size, as a user gets it: `pip install` of the wheel (not -e) into a fresh venv, then
+    `degusta quickstart --small` in another folder: every method, one report, every linked file present, every
+    config it ran written beside the results. (One run of the quickstart for both: it is the suite's slowest step.)"""
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)], check=True)
     python = venv / "bin" / "python"
@@ -180,6 +183,17 @@ def test_quickstart_small_runs_from_a_non_editable_install(wheel, tmp_path):
                           capture_output=True, text=True, timeout=1800)
     assert done.returncode == 0, done.stderr[-3000:]
     print(f"quickstart --small from a wheel install: {time.time() - t0:.0f} s")
-    metrics = json.loads((work / "quickstart" / "report" / "metrics.json").read_text())
-    assert "tiny_vlm_finetuned" in metrics["methods"] and not metrics["failed_methods"]
-    assert (work / "quickstart" / "configs" / "learned_cpu.yaml").is_file()
+    report = work / "quickstart" / "report"
+    assert done.stdout.strip().splitlines()[-1].endswith("report.html in a browser)")
+    assert (report / "report.html").is_file()
+    assert "export OPENAI_API_KEY" in done.stdout  # how to add the GPT-4o rows
+    metrics = json.loads((report / "metrics.json").read_text())
+    assert set(metrics["methods"]) == {"random", "population_mean", "copy_nearest", "consensus", "oracle", "learned",
+                                       "tiny_vlm_zeroshot", "tiny_vlm_finetuned"}
+    assert not metrics["failed_methods"]
+    text = (report / "report.md").read_text()
+    for link in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text):
+        assert (report / link).is_file(), link
+    # Every config it ran is written beside the results, so each step can be re-run by hand.
+    assert {p.name for p in (work / "quickstart" / "configs").glob("*.yaml")} >= {"learned_cpu.yaml",
+                                                                                  "finetune_tiny_cpu.yaml"}
