@@ -20,7 +20,7 @@ from degusta_learn.metrics.acceptability import (
 from degusta_learn.metrics.bootstrap import bootstrap_ci, paired_bootstrap
 from degusta_learn.metrics.kabsch import kabsch_rmsd, kabsch_rmsd_batch, kabsch_transform, unregistered_rmsd
 from degusta_learn.metrics.matching import feature_table, match, match_costs
-from degusta_learn.metrics.scores import EpisodeScore, score_many, score_prediction
+from degusta_learn.metrics.scores import EpisodeScore, MatchedPair, matched_pairs, score_many, score_prediction
 from degusta_learn.metrics.set_score import (
     DEGENERATE_FRACTION,
     SET_PENALTY,
@@ -30,7 +30,7 @@ from degusta_learn.metrics.set_score import (
 
 __all__ = [
     "DEGENERATE_FRACTION", "PAPER_ACCEPTABILITY", "PAPER_MOGMA_FRACTION", "SET_PENALTY", "THRESHOLDS",
-    "EpisodeScore", "acceptability_curve", "bootstrap_ci", "feature_table", "few_matched_fraction",
+    "EpisodeScore", "MatchedPair", "acceptability_curve", "bootstrap_ci", "feature_table", "few_matched_fraction",
     "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch", "kabsch_transform", "match", "match_costs",
-    "paired_bootstrap", "score_many", "score_prediction", "set_rmsd_points", "unregistered_rmsd",
+    "matched_pairs", "paired_bootstrap", "score_many", "score_prediction", "set_rmsd_points", "unregistered_rmsd",
 ]

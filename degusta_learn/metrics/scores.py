@@ -101,6 +101,14 @@ def score_prediction(catalog: Catalog, gt: Arrangement, placements: Sequence[Pla
     trivial = _trivial(n, m, failed or pred_failed)
     if trivial is not None:
         return trivial
+    gi, pi, same, d2, sq = _match_one(table, g, gt, placements)
+    k = len(gi)
+    return EpisodeScore(sum(same) / n, math.sqrt(sum(sq) / k), math.sqrt(sum(d2) / k), abs(m - n), k, n, m,
+                        set_rmsd_points(sq, n, m))
+
+
+def _match_one(table, g, gt: Arrangement, placements: Sequence[Placement]):
+    """(gt_idx, pred_idx, same object?, squared distances, squared residuals after Kabsch) of the matched pairs."""
     p = table.rows_of([q.object for q in placements], "prediction")
     gxy, pxy = _xy(gt.placements), _xy(placements)
     ham = table.hamming_between(np.array([g]), np.array([p]))  # (1, n, m)
@@ -108,11 +116,32 @@ def score_prediction(catalog: Catalog, gt: Arrangement, placements: Sequence[Pla
     gi, pi = (a.tolist() for a in linear_sum_assignment(cost[0]))
     a = [[gxy[2 * i], gxy[2 * i + 1]] for i in gi]  # matched positions, Python floats
     b = [[pxy[2 * j], pxy[2 * j + 1]] for j in pi]
-    k = len(gi)
-    unreg = math.sqrt(sum((u[0] - v[0]) ** 2 + (u[1] - v[1]) ** 2 for u, v in zip(a, b)) / k)
-    correct = sum(g[i] == p[j] for i, j in zip(gi, pi))  # same row <=> same object id
-    sq = kabsch_sq_residuals_points(a, b)
-    return EpisodeScore(correct / n, math.sqrt(sum(sq) / k), unreg, abs(m - n), k, n, m, set_rmsd_points(sq, n, m))
+    same = [bool(g[i] == p[j]) for i, j in zip(gi, pi)]  # same row <=> same object id
+    d2 = [(u[0] - v[0]) ** 2 + (u[1] - v[1]) ** 2 for u, v in zip(a, b)]
+    return gi, pi, same, d2, kabsch_sq_residuals_points(a, b)
+
+
+@dataclass(frozen=True)
+class MatchedPair:
+    """One matched (ground-truth, predicted) object of an episode, as `score_prediction` matched it."""
+
+    gt_index: int
+    pred_index: int  # the item's place in the answer: 0 is the first object it names
+    same_object: bool  # the predicted id is the ground truth's
+    distance: float  # unregistered
+    residual: float  # after the Kabsch registration of all the episode's matched pairs
+
+
+def matched_pairs(catalog: Catalog, gt: Arrangement, placements: Sequence[Placement]) -> list[MatchedPair]:
+    """The pairs behind an episode's scores, for per-object analyses (e.g. error by the item's place in the answer;
+    benchmarks/by_position.py). An empty or failed prediction has none."""
+    placements, failed = _unpack(placements)
+    table = feature_table(catalog)
+    g = table.rows_of([p.object for p in gt.placements], f"ground truth {gt.participant!r} trial {gt.trial}")
+    if failed or not placements or not len(g):
+        return []
+    gi, pi, same, d2, sq = _match_one(table, g, gt, placements)
+    return [MatchedPair(i, j, s, math.sqrt(d), math.sqrt(r)) for i, j, s, d, r in zip(gi, pi, same, d2, sq)]
 
 
 def _score_group(table, g: np.ndarray, gxy: np.ndarray, p: np.ndarray, pxy: np.ndarray) -> list[EpisodeScore]:
