@@ -3,7 +3,8 @@
 For each predictions file, every matched (ground-truth, predicted) pair of every episode, as the scorer matches them
 (`degusta_learn.metrics.matched_pairs`), grouped by the predicted item's index in its answer (1 = the first object
 named; the last row pools that index and beyond): how many pairs, the fraction with the right object id, the mean
-unregistered distance and the RMS residual after the episode's Kabsch registration. The ground truth lists objects
+unregistered distance (all pairs; those whose id is right; those whose id is wrong) and the RMS residual after the
+episode's Kabsch registration. The ground truth lists objects
 in the person's placing order, so a heuristic's rows show how much harder the later-placed objects are anyway.
 
 Usage:
@@ -29,9 +30,14 @@ def by_position(ds, predictions, last: int = 6) -> list[dict]:
         gt = ds.arrangement(pred.participant, pred.target)
         for pair in matched_pairs(ds.catalog, gt, pred):
             groups.setdefault(min(pair.pred_index + 1, last), []).append(pair)
+    def mean(values):
+        return float(np.mean(values)) if values else float("nan")
+
     return [{"item": k, "pooled": k == last, "pairs": len(v),
-             "right_id": float(np.mean([p.same_object for p in v])),
-             "distance": float(np.mean([p.distance for p in v])),
+             "right_id": mean([p.same_object for p in v]),
+             "distance": mean([p.distance for p in v]),
+             "distance_right": mean([p.distance for p in v if p.same_object]),
+             "distance_wrong": mean([p.distance for p in v if not p.same_object]),
              "residual": float(np.sqrt(np.mean([p.residual ** 2 for p in v])))}
             for k, v in sorted(groups.items())]
 
@@ -44,10 +50,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     ds = load_dataset(args.dataset)
     for path in args.predictions:
-        print(f"\n{path}\n| item | pairs | right id | unregistered distance | residual after Kabsch |\n|---|---:|---:|---:|---:|")
+        print(f"\n{path}\n| item | pairs | right id | unregistered distance: all, right id, wrong id | "
+              f"residual after Kabsch |\n|---|---:|---:|---|---:|")
         for r in by_position(ds, read_predictions(path, ds.catalog), args.last):
             print(f"| {r['item']}{'+' if r['pooled'] else ''} | {r['pairs']} | {r['right_id']:.3f} | "
-                  f"{r['distance']:.3f} | {r['residual']:.3f} |")
+                  f"{r['distance']:.3f}, {r['distance_right']:.3f}, {r['distance_wrong']:.3f} | {r['residual']:.3f} |")
     return 0
 
 

@@ -27,6 +27,7 @@ def test_the_ground_truth_is_right_and_exact_at_every_place(small_dataset):
     assert [r["item"] for r in rows] == [1, 2, 3] and rows[-1]["pooled"]
     for r in rows:
         assert r["right_id"] == 1.0 and r["distance"] == pytest.approx(0, abs=1e-12)
+        assert r["distance_right"] == pytest.approx(0, abs=1e-12) and math.isnan(r["distance_wrong"])
         assert r["residual"] == pytest.approx(0, abs=1e-9)
 
 
@@ -48,3 +49,14 @@ def test_matched_pairs_are_the_scores_pairs(small_dataset):
     assert sum(p.same_object for p in pairs) / score.n_gt == score.object_accuracy
     assert matched_pairs(small_dataset.catalog, gt, dataclasses.replace(pred, failed=True)) == []
     assert matched_pairs(small_dataset.catalog, gt, []) == []
+
+
+def test_teacher_forced_items_assigns_each_value_token_to_its_item_and_field():
+    fields = load_benchmark("teacher_forced_items").token_fields
+    pieces = ["[{'", "type", "': '", "plate", "', '", "id", "': ", "75", ", '", "position", "': ['", "G5", "', '",
+              "E6", "'], '", "cardinal_direction", "': '", "N", "'}, {'", "type", "': '", "knife", "', '", "id", "': ",
+              "56", ", '", "position", "': ['", "D2", "'], '", "cardinal_direction", "': '", "SW", "'}]"]
+    got = [(p, f) for p, f in zip(pieces, fields(pieces)) if f is not None]
+    assert got == [("plate", (0, "'type'")), ("75", (0, "'id'")), ("G5", (0, "'position'")), ("E6", (0, "'position'")),
+                   ("N", (0, "'cardinal_direction'")), ("knife", (1, "'type'")), ("56", (1, "'id'")),
+                   ("D2", (1, "'position'")), ("SW", (1, "'cardinal_direction'"))]
