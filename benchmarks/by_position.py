@@ -4,8 +4,8 @@ For each predictions file, every matched (ground-truth, predicted) pair of every
 (`degusta_learn.metrics.matched_pairs`), grouped by the predicted item's index in its answer (1 = the first object
 named; the last row pools that index and beyond): how many pairs, the fraction with the right object id, the mean
 unregistered distance (all pairs; those whose id is right; those whose id is wrong) and the RMS residual after the
-episode's Kabsch registration. The ground truth lists objects
-in the person's placing order, so a heuristic's rows show how much harder the later-placed objects are anyway.
+episode's Kabsch registration. The ground truth lists objects in the person's placing order, so a heuristic's rows
+show how much harder the later-placed objects are anyway.
 
 Usage:
     python benchmarks/by_position.py --dataset data/naturalistic PRED.jsonl [PRED.jsonl ...] [--last 6]
@@ -30,6 +30,7 @@ def by_position(ds, predictions, last: int = 6) -> list[dict]:
         gt = ds.arrangement(pred.participant, pred.target)
         for pair in matched_pairs(ds.catalog, gt, pred):
             groups.setdefault(min(pair.pred_index + 1, last), []).append(pair)
+
     def mean(values):
         return float(np.mean(values)) if values else float("nan")
 

@@ -1,16 +1,16 @@
 #!/usr/bin/env bash
 # The GPU configs, run for real on one lent GPU (an H100/H200 session; never CI). Each stage is time-boxed and
-# logged, so one failure does not hide the rest:
-#   1. configs/finetune_smolvlm_256m.yaml as written (bf16, LoRA, accelerator gpu) on its full-size random-weight
-#      replica (benchmarks/bench_replicas.py --gpu): seconds per step, the allocator's peak against the dry run's
-#      prediction, one validation that generates a batch;
-#   2. configs/finetune_tiny_base_cpu.yaml moved to the GPU (trainer.accelerator=gpu, bf16-mixed), then predict
+# logged, so one failure does not hide the rest, in this order:
+#   1. configs/finetune_tiny_base_cpu.yaml moved to the GPU (trainer.accelerator=gpu, bf16-mixed), then predict
 #      with backend.device=cuda (on $EPISODES, an episodes.jsonl, if set: the hf backend decodes one episode at a
 #      time, ~1 s each); its best_adapter/ is copied to OUT, to decode the 200 test episodes on the CPU as well;
-#   3. configs/pretrain_tiny_vlm_cpu.yaml moved to the GPU for 100 vision-stage and 100 decoder steps: its seconds
-#      per step there (the CPU recipe's are ~0.5 and ~1.3-1.6 s), not a base;
-#   4. configs/learned_gpu.yaml (strategy ddp, bf16-mixed, devices auto) for a capped number of steps, then
-#      configs/learned_predict.yaml with device=cuda.
+#   2. configs/pretrain_tiny_vlm_cpu.yaml moved to the GPU for 100 vision-stage and 100 decoder steps: its pace
+#      there (the CPU recipe's is ~0.5 and ~1.3-1.6 s a step), not a base;
+#   3. configs/learned_gpu.yaml (strategy ddp, bf16-mixed, devices auto) for a capped number of steps, then
+#      configs/learned_predict.yaml with device=cuda;
+#   4. configs/finetune_smolvlm_256m.yaml as written (bf16, LoRA, accelerator gpu) on its full-size random-weight
+#      replica (benchmarks/bench_replicas.py --gpu): seconds per step, the allocator's peak against the dry run's
+#      prediction, one validation that generates a batch.
 # Usage: bash benchmarks/gpu_check.sh DATA OUT [REFERENCE]
 #   DATA: a naturalistic dataset folder; OUT: logs, results.json, predictions and metrics.csv files (bring them
 #   back and score the predictions with `degusta evaluate`); REFERENCE: SmolVLM-256M-Instruct's tokenizer and
@@ -43,8 +43,7 @@ SMI=$!
 stage tiny_train "${T_TINY_TRAIN:-120}" "${degusta[@]}" train --config configs/finetune_tiny_base_cpu.yaml \
     --set dataset="$DATA" --set trainer.accelerator=gpu --set trainer.run_dir="$WORK/runs" \
     --set trainer.run_name=tiny_gpu --set trainer.progress_bar=false
-cp "$WORK/runs/tiny_gpu/csv/metrics.csv" "$OUT/tiny_gpu_metrics.csv" 2>/dev/null \
-    || find "$WORK/runs/tiny_gpu" -name metrics.csv -exec cp {} "$OUT/tiny_gpu_metrics.csv" \;
+find "$WORK/runs/tiny_gpu" -name metrics.csv -exec cp {} "$OUT/tiny_gpu_metrics.csv" \; 2>/dev/null
 
 stage tiny_predict "${T_TINY_PREDICT:-80}" "${degusta[@]}" predict --config configs/predict_hf_base_finetuned.yaml \
     --set dataset="$DATA" --set backend.adapter="$WORK/runs/tiny_gpu/best_adapter" --set backend.device=cuda \

@@ -19,6 +19,7 @@ from degusta_learn.baselines.learned.features import Vocab, onto_surface
 from degusta_learn.baselines.learned.module import FORMAT, KIND
 from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
 from degusta_learn.baselines.learned.slots import SlotEncoder, collate_slots
+from degusta_learn.devices import resolve_device
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import PredictConfig
 from degusta_learn.scene import Dataset, Episode, Placement, Prediction
@@ -118,8 +119,6 @@ def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list
 
 
 def _run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    from degusta_learn.devices import resolve_device
-
     model, hp = load_model(cfg.checkpoint, resolve_device(cfg.device, "device"))
     model.vocab.check_catalog(ds.catalog, f"{cfg.dataset}/catalog.json")
     with torch.no_grad():
