@@ -43,10 +43,14 @@ def cmd_data_export_sft(args) -> str:
 def cmd_data_validate(args) -> str:
     from degusta_learn.scene import load_dataset
 
+    from degusta_learn.synth.oracle import dataset_styles
+
     ds = load_dataset(args.dir)
     ratings = f", {len(ds.ratings)} ratings" if ds.ratings is not None else ""
+    styles = dataset_styles(ds)
+    styles = f", {len(styles)} latent styles" if styles is not None else ""
     return (f"{args.dir}: valid — {len(ds.catalog)} objects, {len(ds.tables)} tables, "
-            f"{len(ds.participants)} participants, {len(ds.arrangements)} arrangements{ratings}")
+            f"{len(ds.participants)} participants, {len(ds.arrangements)} arrangements{ratings}{styles}")
 
 
 def cmd_data_episodes(args) -> str:

@@ -46,3 +46,47 @@ def test_oracle_needs_latent_styles(small_dataset_dir, sim_dir, tmp_path):
     with pytest.raises(DegustaError, match="latent_styles.json: no latent style for participant 'p0"):
         run_predict(None, ["method=oracle", f"dataset={small_dataset_dir}", f"out={tmp_path / 'p.jsonl'}",
                            f"styles={sim_dir / 'latent_styles.json'}"])
+
+
+BAD_STYLES = [  # (edit of the first style, what the one-line error names)
+    (lambda s: s["settings"][0].update(u="abc"), "field 'settings[0].u': expected a finite number"),
+    (lambda s: s.update(settings=[]), "field 'settings': expected a non-empty list"),
+    (lambda s: s["slots"][0].update(setting=7), "field 'slots[0].setting': 7 is not a setting index"),
+    (lambda s: s.update(scale=1e308), "field 'scale': 1e+308 is outside"),
+    (lambda s: s["slots"][0].update(p_include=True), "field 'slots[0].p_include': expected a finite number"),
+    (lambda s: s.update(noise=5), "field 'noise': expected an object"),
+    (lambda s: s.update(colour=["red"]), "unknown field 'colour'"),
+    (lambda s: s.pop("slots"), "missing field 'slots'"),
+    (lambda s: s["slots"][0].update(object=99999), "slots[0]: object 99999 is not a"),
+]
+
+
+@pytest.mark.parametrize("edit, message", BAD_STYLES)
+def test_a_malformed_latent_style_is_one_line_naming_the_field(sim_dir, tmp_path, capsys, edit, message):
+    """These were tracebacks deep in the layout (TypeError, ZeroDivisionError, IndexError) or an oracle that
+    wrote predictions evaluate refuses (object 99999, coordinates of 1e307); `data validate` passed them."""
+    import json
+    import shutil
+
+    from degusta_learn.cli import main as cli_main
+
+    data = tmp_path / "data"
+    shutil.copytree(sim_dir, data)
+    styles = json.loads((data / "latent_styles.json").read_text())
+    edit(styles[0])
+    (data / "latent_styles.json").write_text(json.dumps(styles))
+    for argv in (["predict", "--config", "oracle", "--set", f"dataset={data}", "--set",
+                  f"out={tmp_path / 'p.jsonl'}", "--set", f"episodes={data / 'episodes.jsonl'}"],
+                 ["data", "validate", str(data)]):
+        assert cli_main(argv) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        assert "latent_styles.json" in err and message in err, err
+    assert not (tmp_path / "p.jsonl").exists()
+
+
+def test_data_validate_counts_the_latent_styles(sim_dir, capsys):
+    from degusta_learn.cli import main as cli_main
+
+    assert cli_main(["data", "validate", str(sim_dir)]) == 0
+    assert "latent styles" in capsys.readouterr().out

@@ -16,6 +16,7 @@ Usage:
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,31 @@ def styles_path(ds: Dataset, override: str | None = None) -> Path:
     return path
 
 
+def check_style_objects(style: Style, catalog, where: str) -> None:
+    """Every slot's favourite object is an object of the slot's type in `catalog` (DegustaError naming it)."""
+    for i, slot in enumerate(style.slots):
+        if slot.object not in catalog or catalog[slot.object].type != slot.type:
+            raise DegustaError(f"{where}: participant {style.participant!r}: slots[{i}]: object {slot.object} is not "
+                               f"a {slot.type} of the dataset's catalog")
+
+
+def dataset_styles(ds: Dataset) -> dict[str, Style] | None:
+    """The dataset folder's latent styles, checked against its catalog and participants; None if it has none."""
+    if ds.root is None:
+        return None
+    path = ds.root / str(ds.meta.get("latent_styles") or STYLES_FILE)
+    if not os.path.lexists(path):
+        return None
+    styles = read_styles(path)
+    for style in styles.values():
+        check_style_objects(style, ds.catalog, str(path))
+    missing = sorted(set(ds.participants) - set(styles))
+    if missing:
+        raise DegustaError(f"{path}: no latent style for participant {missing[0]!r} "
+                           f"({len(missing)} of the dataset's participants have none)")
+    return styles
+
+
 def predict_oracle(ds: Dataset, styles: dict[str, Style], episodes: list[Episode], method: str = "oracle",
                    where: str = "latent styles") -> list[Prediction]:
     """One noiseless expected-arrangement prediction per episode (context is not needed)."""
@@ -56,6 +82,7 @@ def predict_oracle(ds: Dataset, styles: dict[str, Style], episodes: list[Episode
         style = styles.get(ep.participant)
         if style is None:
             raise DegustaError(f"{where}: no latent style for participant {ep.participant!r}")
+        check_style_objects(style, ds.catalog, where)
         table = ds.tables[ds.arrangement(ep.participant, ep.target).table]
         placements = expected_arrangement(style, table)
         out.append(Prediction(ep.id, ep.participant, ep.target, method, placements,

@@ -24,6 +24,7 @@ so the oracle works from the folder alone. See docs/data.md for every parameter'
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,16 +120,78 @@ def write_styles(path: str | Path, styles: list[Style]) -> None:
     atomic_write_json(path, [s.to_json() for s in styles])
 
 
+# Bounds a style's numbers must keep (docs/data.md draws them well inside): beyond them the oracle's layout
+# leaves the table or overflows, so a hand-edited file is refused when read, naming the field.
+_RANGES = {"u": (-1.0, 2.0), "v": (-1.0, 2.0), "facing": (-3600.0, 3600.0), "dx": (-2.0, 2.0), "dy": (-2.0, 2.0),
+           "rotation": (-3600.0, 3600.0), "p_include": (0.0, 1.0), "loyalty": (0.0, 1.0), "strictness": (0.0, 100.0),
+           "scale": (0.01, 10.0), "position": (0.0, 1.0), "anchor": (0.0, 1.0), "turn": (0.0, 360.0),
+           "order": (0.0, 1.0), "rating_base": (0.0, 100.0), "rating_sensitivity": (0.0, 1000.0)}
+_NOISE_RANGES = {"rotation": (0.0, 360.0), "scale": (0.0, 2.0)}
+
+
+def _number(value, field: str, ranges: dict) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"field {field!r}: expected a finite number, got {value!r}")
+    lo, hi = ranges.get(field.rsplit(".", 1)[-1], (-math.inf, math.inf))
+    if not lo <= value <= hi:
+        raise ValueError(f"field {field!r}: {value!r} is outside [{lo:g}, {hi:g}]")
+
+
+def _fields(cls, d, where: str, ranges: dict = _RANGES) -> dict:
+    """`d` checked against dataclass `cls`: an object, no unknown or missing keys, numbers finite and in range."""
+    if not isinstance(d, dict):
+        what = f"field {where.rstrip('.')!r}" if where else "the style"
+        raise ValueError(f"{what}: expected an object, got {type(d).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - set(fields))
+    if unknown:
+        raise ValueError(f"unknown field {where}{unknown[0]!r} (known: {', '.join(fields)})")
+    for name, f in fields.items():
+        if name not in d:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ValueError(f"missing field {where}{name!r}")
+            continue
+        value, kind = d[name], str(f.type)
+        if kind == "float":
+            _number(value, f"{where}{name}", ranges)
+        elif kind == "int" and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
+            raise ValueError(f"field {where}{name!r}: expected an integer >= 0, got {value!r}")
+        elif kind == "str" and not (isinstance(value, str) and value.strip()):
+            raise ValueError(f"field {where}{name!r}: expected a non-empty string, got {value!r}")
+        elif kind == "list[str]" and not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
+            raise ValueError(f"field {where}{name!r}: expected a list of strings")
+    return d
+
+
+def _check_style(d) -> None:
+    _fields(Style, d, "")
+    for key in ("settings", "slots"):
+        if not isinstance(d[key], list) or not d[key]:
+            raise ValueError(f"field {key!r}: expected a non-empty list")
+    for i, s in enumerate(d["settings"]):
+        _fields(Setting, s, f"settings[{i}].")
+    for i, s in enumerate(d["slots"]):
+        _fields(Slot, s, f"slots[{i}].")
+        if s.get("setting", 0) >= len(d["settings"]):
+            raise ValueError(f"field 'slots[{i}].setting': {s['setting']} is not a setting index "
+                             f"(the style has {len(d['settings'])})")
+    if "noise" in d:
+        _fields(Noise, d["noise"], "noise.", {**_RANGES, **_NOISE_RANGES})
+
+
 def read_styles(path: str | Path) -> dict[str, Style]:
-    """Read a latent styles file -> {participant: Style}; malformed entries name the file and entry."""
+    """Read a latent styles file -> {participant: Style}; a malformed entry names the file, entry and field."""
     data = read_json(path)
     if not isinstance(data, list):
         raise DegustaError(f"{path}: expected a JSON list of latent styles")
     out = {}
     for i, entry in enumerate(data):
         try:
+            _check_style(entry)
             style = Style.from_json(entry)
-        except (TypeError, KeyError, AttributeError) as e:
-            raise DegustaError(f"{path}: entry {i}: not a latent style ({e})") from None
+        except (ValueError, TypeError, KeyError, AttributeError) as e:
+            raise DegustaError(f"{path}: entry {i}: not a latent style: {e}") from None
+        if style.participant in out:
+            raise DegustaError(f"{path}: entry {i}: participant {style.participant!r} has a latent style already")
         out[style.participant] = style
     return out
