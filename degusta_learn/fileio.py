@@ -47,6 +47,12 @@ def target_problem(path: str | os.PathLike) -> str | None:
         return "is an empty path; give the path of a file to write"
     if path.is_dir():
         return "is a folder; give the path of a file to write"
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        mode = None
+    if mode is not None and not stat.S_ISREG(mode):
+        return "exists and is not a regular file (a device, pipe or socket); give the path of a file to write"
     for parent in path.parents:
         if parent.is_dir():
             break

@@ -205,7 +205,8 @@ def test_cache_keys_are_those_of_the_one_flat_config():
         "anthropic": ({"model": "claude-3-haiku-20240307", "base_url": "http://proxy/v1"},
                       "8c90649597900f538ed8460b8135dee4bc58f308060ccfebda7c13e12d77a318"),
         "gemini": ({"model": "gemini-1.5-pro"}, "795a2d2ede2850697f0329716f8981887d4f507ac908cec25f63df9caccbbdb7"),
-        "replay": ({"path": "answers.jsonl"}, "0b83b2cbab210c58b47f5d68972ace73b1a9e8ebeeccea0f0cbb439b6e2b1f79"),
+        "replay": ({"path": "answers.jsonl", "model": "gpt-4o"},  # the default model before "replay"
+                   "0b83b2cbab210c58b47f5d68972ace73b1a9e8ebeeccea0f0cbb439b6e2b1f79"),
     }
     prompt = Prompt("mogma", ["objects:", "the task"], episode="p001/t2/k4")
     for tag, (keys, expected) in golden.items():

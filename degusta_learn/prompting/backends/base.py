@@ -80,14 +80,18 @@ def _backends_with(test) -> list[str]:
     return found
 
 
+_MODEL_HINT = {"hf": "a model folder or a Hugging Face id"}
+
+
 @dataclass
 class BackendConfig:
     """The keys of a `backend:` section every backend takes; each backend's config class adds its own."""
 
     name: str = DEFAULT_BACKEND
     """Which backend (a name in `BACKENDS`): openai (any OpenAI-compatible server), anthropic, gemini, hf, replay."""
-    model: str = "gpt-4o"
-    """Model name at the service (or a hub id / folder for hf)."""
+    model: str = ""
+    """Model name at the service (or a hub id / folder for hf); required, except for openai (gpt-4o, the
+    paper's) and replay."""
     max_tokens: int = 1024
     """Most tokens per sampled answer."""
     structured_output: bool = False
@@ -179,8 +183,12 @@ class Backend:
 
     @classmethod
     def check_run(cls, cfg: BackendConfig, ds, episodes: list, image_size: int) -> None:
-        """Refuse, before anything is built or loaded, a run this backend must not serve (one line); the hf
-        backend refuses episodes of participants its fine-tuned model was trained or validated on."""
+        """Refuse, before anything is built or loaded, a run this backend must not serve (one line): no model
+        named; the hf backend also refuses episodes of participants its fine-tuned model was trained or validated
+        on."""
+        if not isinstance(cfg.model, str) or not cfg.model.strip():
+            raise DegustaError(f"backend.model: required for the {cfg.name} backend "
+                               f"({_MODEL_HINT.get(cfg.name, 'the model name at the service')})")
 
     @classmethod
     def price(cls, cfg: BackendConfig, prices: dict[str, Any]) -> tuple[float, float] | None:

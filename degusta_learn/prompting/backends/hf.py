@@ -29,6 +29,7 @@ import threading
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
+from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import Backend, BackendConfig
 
@@ -63,7 +64,7 @@ class HFConfig(BackendConfig):
     """cpu, cuda, auto."""
     dtype: Literal["auto", "float32", "bfloat16", "float16"] = "auto"
     """float32, bfloat16, float16, auto."""
-    image_size: int | None = None
+    image_size: int | None = bounded(None, 16, 4096)
     """The processor's image size budget (unset: the model's default)."""
     context_answers: bool | None = None
     """Each context table also written out in the answer format after its image (`vlm.prompt_options`; not the
@@ -156,6 +157,7 @@ class HFBackend(Backend):
         from degusta_learn.scene.dataset import dataset_identity
         from degusta_learn.vlm.record import locate_record, read_record
 
+        super().check_run(cfg, ds, episodes, image_size)
         path = locate_record(cfg.adapter, cfg.model)
         if path is not None:
             read_record(path).check_prediction(dataset_identity(ds), {e.participant for e in episodes}, image_size,

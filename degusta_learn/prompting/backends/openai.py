@@ -45,6 +45,7 @@ class OpenAIConfig(RemoteConfig):
     """The `backend:` keys of the openai backend (GPT-4o or any OpenAI-compatible server)."""
 
     name: str = "openai"
+    model: str = "gpt-4o"
     detail: Literal["low", "high", "auto"] | None = None
     """Image detail "low" (85 tokens an image), "high" or "auto" (unset: the server default)."""
 

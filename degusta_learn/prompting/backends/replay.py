@@ -28,6 +28,7 @@ class ReplayConfig(BackendConfig):
     """The `backend:` keys of the replay backend."""
 
     name: str = "replay"
+    model: str = "replay"
     path: str | None = None
     """The JSONL file of recorded answers (required)."""
 
@@ -50,7 +51,10 @@ def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
                 raise DegustaError(f"{where}: text: expected a string")
             answers[sample] = row["text"]
         else:
-            responses = (row.get("diagnostics") or {}).get("responses")
+            diagnostics = row.get("diagnostics")
+            if diagnostics is not None and not isinstance(diagnostics, dict):
+                raise DegustaError(f"{where}: diagnostics: expected an object, got {type(diagnostics).__name__}")
+            responses = (diagnostics or {}).get("responses")
             if not isinstance(responses, list):
                 raise DegustaError(f"{where}: expected 'text' (one answer) or diagnostics.responses (a list)")
             for i, text in enumerate(responses):
