@@ -167,6 +167,14 @@ def _int_in(lo: int, hi: int) -> Callable[[str], int]:
     return parse
 
 
+def _out_arg(text: str) -> Path:
+    """An argparse type: an output path, never empty (Path("") is the current folder, whose files it would
+    replace)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give the file or folder to write")
+    return Path(text)
+
+
 SEED = _int_in(0, MAX_SEED)
 CONFIG_HELP = "a YAML file, or the name of a shipped config (degusta configs list)"
 IMAGE_SIZE = _int_in(16, 4096)
@@ -180,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     data = verbs.add_parser("data", help="generate, validate and cut datasets").add_subparsers(dest="data_verb", required=True)
     p = data.add_parser("generate", help="write an embedded synthetic dataset")
     p.add_argument("name", choices=["naturalistic", "simulated"])
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing dataset folder that degusta generated (nothing else is ever deleted)")
@@ -193,13 +201,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--context", type=int, choices=list(CONTEXT_LENGTHS), required=True)
     p.add_argument("--split", default="test", choices=list(SPLITS))
     p.add_argument("--seed", type=SEED, default=0)
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--out", required=True, type=_out_arg)
     p.set_defaults(func=cmd_data_episodes)
     p = data.add_parser("export-sft", help="a finetune config's training examples as a messages + images "
                         "dataset (TRL, LLaMA-Factory)")
     p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP + " (kind: finetune)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--split", default="train", choices=["train", "val"])
     p.set_defaults(func=cmd_data_export_sft)
 
@@ -220,7 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", required=True, type=Path)
     p.add_argument("--predictions", required=True, type=Path, nargs="+")
     p.add_argument("--episodes", type=Path, help="the episode set the predictions must cover (optional)")
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--bootstrap", type=_int_in(1, 1_000_000), default=1000, help="bootstrap resamples for the intervals")
     p.add_argument("--seed", type=SEED, default=0)
     p.set_defaults(func=cmd_evaluate)
@@ -238,19 +246,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target", type=_int_in(0, 999_999_999), required=True, help="the target trial")
     p.add_argument("--context", type=_int_in(0, 1000), required=True, help="context length (e.g. 0, 2, 4)")
     p.add_argument("--method", required=True, choices=list(PROMPT_METHODS))
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--size", type=IMAGE_SIZE, default=448, help="image size in pixels")
     p.add_argument("--grid", type=_int_in(1, 26), default=8, help="grid rows = columns for logma/mogma")
     p.add_argument("--seed", type=SEED, default=0, help="episode seed (as in degusta data episodes)")
     p.set_defaults(func=cmd_render_episode)
     p = render.add_parser("catalog", help="a contact sheet of the whole catalog")
     p.add_argument("dataset", type=Path)
-    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--size", type=IMAGE_SIZE, default=448, help="pixels per object-type sheet")
     p.set_defaults(func=cmd_render_catalog)
 
     p = verbs.add_parser("quickstart", help="the main job on the embedded default (CPU, about 10 minutes on 2 cores)")
-    p.add_argument("--out", type=Path, default=Path("quickstart"), help="where everything is written")
+    p.add_argument("--out", type=_out_arg, default=Path("quickstart"), help="where everything is written")
     p.add_argument("--small", action="store_true", help="a reduced size that finishes in a few minutes (CI)")
     p.add_argument("--with-api", action="store_true",
                    help="add a zero-shot GPT-4o MOGMA row (needs OPENAI_API_KEY; prints the cost first)")

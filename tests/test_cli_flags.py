@@ -20,6 +20,11 @@ from degusta_learn.cli import main
       "--out", "o"], "--target"),
     (["predict"], "--config"),
     (["bogus"], "verb"),
+    # an empty --out was the current folder: evaluate replaced a report.md there
+    (["evaluate", "--dataset", "d", "--predictions", "p", "--out", ""], "--out: an empty path"),
+    (["render", "episode", "d", "--participant", "p000", "--target", "0", "--context", "2", "--method", "mogma",
+      "--out", " "], "--out: an empty path"),
+    (["data", "generate", "naturalistic", "--out", ""], "--out: an empty path"),
 ])
 def test_bad_flags_are_one_line_and_exit_2(argv, names, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
