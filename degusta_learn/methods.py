@@ -16,7 +16,7 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from degusta_learn.config import _show, apply_overrides, from_dict, read_yaml, seed_field
 from degusta_learn.errors import DegustaError
@@ -46,8 +46,9 @@ class PredictConfig:
     episodes: str | None = None
     """An episodes.jsonl file; if unset, episodes are built from `context` and `split`."""
     context: int | None = 4
-    """Context length (0, 2 or 4). With `episodes`, the file must hold episodes of this length (null: any)."""
-    split: str = "test"
+    """Context length (0, 2 or 4). With `episodes`, every episode of the file is run as it is, and the file must
+    hold episodes of this length (a mixed file, e.g. quickstart's 0/2/4 set, among others; null: any file)."""
+    split: Literal["train", "val", "test", "all"] = "test"
     """Participant split (train, val, test, all) when `episodes` is unset."""
     seed: int = seed_field(0)
     """Seed of the split and of any sampling the method does (0 .. 2**32 - 1)."""

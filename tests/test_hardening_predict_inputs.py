@@ -70,3 +70,8 @@ def test_a_backend_without_a_model_says_the_model_is_required(data, tmp_path, ca
     assert code == 2 and f"backend.model: required for the {backend} backend" in one_line(err)
     code, err = predict(capsys, "dry_run=true", config=str(cfg))
     assert code == 2 and "backend.model: required" in one_line(err)
+
+
+def test_an_unknown_split_names_the_config_and_key(data, tmp_path, capsys):
+    code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", "split=foo")
+    assert code == 2 and "baseline_population_mean.yaml: split: expected one of" in one_line(err)

@@ -41,3 +41,16 @@ def test_episodes_file_round_trip_and_errors(small_dataset, tmp_path):
         read_episodes(tmp_path / "bad.jsonl", small_dataset)
     with pytest.raises(DegustaError, match="at least 3 participants"):
         split_participants(["a", "b"])
+
+
+def test_an_episode_whose_context_contradicts_its_k_id_names_the_line(tmp_path, small_dataset):
+    """A k4 episode edited to two context trials was run as it was (the id still said k4)."""
+    import json
+
+    path = tmp_path / "e.jsonl"
+    write_episodes(path, make_episodes(small_dataset, 4, "all"))
+    rows = [json.loads(line) for line in path.read_text().splitlines()]
+    rows[1]["context"] = rows[1]["context"][:2]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    with pytest.raises(DegustaError, match=r"e.jsonl:2: .*context.*2 trials, but the id .* says context length 4"):
+        read_episodes(path, small_dataset)

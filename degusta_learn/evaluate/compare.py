@@ -34,6 +34,7 @@ import itertools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -107,7 +108,7 @@ class CompareConfig:
     """The methods; the report ranks them by mean set RMSD (degenerate ones last), this order breaks ties."""
     contexts: list[int] = field(default_factory=lambda: list(CONTEXT_LENGTHS))
     """Context lengths to build episodes for (ignored when `episodes` is set)."""
-    split: str = "test"
+    split: Literal["train", "val", "test", "all"] = "test"
     """Participant split of the episodes."""
     episodes: str | None = None
     """A fixed episodes.jsonl instead of `contexts` + `split`."""

@@ -13,6 +13,7 @@ in the split becomes a target once, so a split of P participants with 5 trials e
 from __future__ import annotations
 
 import hashlib
+import re
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +104,9 @@ def read_episodes(path: str | Path, ds: Dataset | None = None) -> list[Episode]:
                 raise w.fail("context", f"expected a list of trial numbers (0..{MAX_TRIAL}), got {context!r}"[:300])
         if len(set(context)) != len(context):
             raise w.fail("context", f"a trial appears twice in {context!r}"[:300])
+        named = re.search(r"/k(\d+)$", eid)  # the ids make_episodes writes end in the context length
+        if named and int(named.group(1)) != len(context):
+            raise w.fail("context", f"{len(context)} trials, but the id {eid!r} says context length {named.group(1)}")
         target = get(entry, "target", "int", w, lo=0, hi=MAX_TRIAL)
         if target in context:
             raise w.fail("context", f"the target trial {target} is also in the context")
