@@ -101,6 +101,16 @@ def test_checkpoint_of_another_kind_or_no_checkpoint_is_refused(trained, tmp_pat
         load_model(tmp_path)
 
 
+@pytest.mark.parametrize("sets", [["split=train"], ["split=val"], ["seed=1", "split=all"]])
+def test_predicting_participants_it_trained_on_is_refused(trained, tmp_path, sets):
+    """A predict seed other than the training seed ran silently on test participants it had trained on."""
+    run, root, _ = trained
+    with pytest.raises(DegustaError, match=r"^(seed|dataset): \d+ of the \d+ participant"):
+        run_predict(None, ["method=learned", f"dataset={root}", f"out={tmp_path / 'p.jsonl'}", "context=2",
+                           f"checkpoint={run}", *sets])
+    assert not (tmp_path / "p.jsonl").exists()
+
+
 def test_other_catalog_is_refused(trained, tmp_path):
     run, root, ds = trained
     objects = list(ds.catalog)

@@ -64,6 +64,27 @@ class TrainingData:
     val_participants: list[str]
     """The participants of the validation split, which chose the best checkpoint (empty: no validation)."""
 
+    def check_unseen(self, fingerprint: str, participants: set[str], src: str) -> None:
+        """Refuse (one line naming `seed` or `dataset`) predicting on participants the model was trained or
+        validated on (`src` names the record in the message)."""
+        n = len(participants)
+        seen = len(participants & set(self.train_participants))
+        val = len(participants & set(self.val_participants))
+        if (seen or val) and fingerprint == self.fingerprint:
+            what = (f"{seen} of the {n} participants predicted here are in this model's training split" if seen else
+                    f"{val} of the {n} participants predicted here are the validation participants of this "
+                    "model's training run, which chose its checkpoint")
+            raise DegustaError(f"seed: {what} ({src}: trained with seed {self.seed} on this dataset); predict with "
+                               f"seed={self.seed} and split=test, the participants it never saw")
+        if seen or val:
+            raise DegustaError(
+                f"dataset: {seen or val} of the {n} participant ids predicted here are "
+                f"{'training' if seen else 'validation'} participants of this model ({src}), trained with seed "
+                f"{self.seed} on another dataset ({self.dataset}, fingerprint {self.fingerprint[:12]}; this one's: "
+                f"{fingerprint[:12]}; any change to a dataset folder's files changes it), and the same ids may be "
+                f"the same people; predict on that dataset with seed={self.seed} and split=test, or give these "
+                "participants new ids")
+
 
 @dataclass(kw_only=True)
 class FinetuneRecord:
@@ -94,23 +115,7 @@ class FinetuneRecord:
     def check_prediction(self, fingerprint: str, participants: set[str], render_size: int, where: str = "") -> None:
         """Refuse (one line naming `seed`, `dataset` or `image_size`) predicting on participants this model
         was trained or validated on, or on images rendered at another size than in training."""
-        t, n, src = self.trained_on, len(participants), where or FINETUNE_FILE
-        seen = len(participants & set(t.train_participants))
-        val = len(participants & set(t.val_participants))
-        if (seen or val) and fingerprint == t.fingerprint:
-            what = (f"{seen} of the {n} participants predicted here are in this model's training split" if seen else
-                    f"{val} of the {n} participants predicted here are the validation participants of this "
-                    "model's training run, which chose its checkpoint")
-            raise DegustaError(f"seed: {what} ({src}: trained with seed {t.seed} on this dataset); predict with "
-                               f"seed={t.seed} and split=test, the participants it never saw")
-        if seen or val:
-            raise DegustaError(
-                f"dataset: {seen or val} of the {n} participant ids predicted here are "
-                f"{'training' if seen else 'validation'} participants of this model ({src}), trained with seed "
-                f"{t.seed} on another dataset ({t.dataset}, fingerprint {t.fingerprint[:12]}; this one's: "
-                f"{fingerprint[:12]}; any change to a dataset folder's files changes it), and the same ids may be "
-                f"the same people; predict on that dataset with seed={t.seed} and split=test, or give these "
-                "participants new ids")
+        self.trained_on.check_unseen(fingerprint, participants, where or FINETUNE_FILE)
         _check_render_size(self.render_size, render_size, "data.render_size", where)
 
 

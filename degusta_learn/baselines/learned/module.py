@@ -56,7 +56,7 @@ def monitor_keys(val_contexts) -> set[str]:
 
 class LearnedModule(L.LightningModule):
     def __init__(self, model: dict, optim: dict, vocab: dict, population: list, min_objects: int = 1,
-                 kind: str = KIND, format: int = FORMAT):
+                 kind: str = KIND, format: int = FORMAT, trained_on: dict | None = None):
         super().__init__()
         self.save_hyperparameters()
         self.model = SlotModel(ModelConfig(**model), Vocab(**vocab))

@@ -23,7 +23,9 @@ from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.optim import OptimConfig
 from degusta_learn.scene import Dataset, load_dataset
+from degusta_learn.scene.dataset import dataset_identity
 from degusta_learn.trainer import TrainerConfig, fit, training_run
+from degusta_learn.vlm.record import TrainingData
 
 
 @dataclass
@@ -53,12 +55,16 @@ def build(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> tuple[LearnedMo
     """The LightningModule and DataModule of `cfg` (loads `cfg.dataset` unless `ds` is given)."""
     ds = ds if ds is not None else load_dataset(cfg.dataset)
     vocab = Vocab.from_dataset(ds)
-    split_of(ds, cfg.seed, cfg.dataset)  # a clear error before the population needs a split
+    split = split_of(ds, cfg.seed, cfg.dataset)  # a clear error before the population needs a split
     population = population_rows(ds, cfg.seed)
     dm = ArrangementDataModule(cfg.data, ds, SlotEncoder(vocab, ds.tables, population, cfg.model.max_objects),
                               seed=cfg.seed, where=cfg.dataset)
+    trained_on = TrainingData(dataset=str(cfg.dataset), fingerprint=dataset_identity(ds), seed=cfg.seed,
+                              contexts=list(cfg.data.contexts), train_participants=split["train"],
+                              val_participants=split["val"])  # learned predict refuses these participants
     module = LearnedModule(model=asdict(cfg.model), optim=asdict(cfg.optim), vocab=vocab.to_dict(),
-                           population=population_pairs(population), min_objects=int(ds.meta.get("min_objects", 3)))
+                           population=population_pairs(population), min_objects=int(ds.meta.get("min_objects", 3)),
+                           trained_on=asdict(trained_on))
     return module, dm
 
 
