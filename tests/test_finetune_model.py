@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
@@ -132,3 +133,19 @@ def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_
     (foreign / "adapter_config.json").write_text(json.dumps({**config, "target_modules": ["no_such_proj"]}))
     with pytest.raises(DegustaError, match=rf"^adapter: cannot load the adapter in {foreign} onto this model"):
         load_vlm(str(tiny_dir("idefics3")), adapter=str(foreign))
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("config.json", b"{bad", "config.json: not readable as JSON (JSONDecodeError"),
+    ("tokenizer_config.json", b"[1, 2]", "tokenizer_config.json: expected a JSON object, got list"),
+    ("tokenizer.json", bytes(range(128, 228)), "tokenizer.json: not readable as JSON (UnicodeDecodeError"),
+    ("processor_config.json", b"", "processor_config.json: not readable as JSON"),
+])
+def test_a_corrupt_json_file_of_a_model_folder_is_named(tmp_path, name, content, message):
+    """The libraries' errors named no file (JSONDecodeError), or were an AttributeError on a list."""
+    from degusta_learn.vlm.load import check_model_source
+
+    (tmp_path / "config.json").write_text('{"model_type": "idefics3"}')
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(DegustaError, match=re.escape(f"backend.model: {tmp_path / name}: {message.split(': ', 1)[1]}")):
+        check_model_source(str(tmp_path), "backend.model")

@@ -49,12 +49,34 @@ def resolve_dtype(dtype: str, device: str, key: str = "dtype"):
     return getattr(torch, dtype)
 
 
+MODEL_JSON_FILES = ("config.json", "generation_config.json", "processor_config.json", "preprocessor_config.json",
+                    "tokenizer_config.json", "special_tokens_map.json", "tokenizer.json", "adapter_config.json")
+
+
+def _check_json_files(folder: Path, key: str) -> None:
+    """The folder's JSON files the loaders read parse as JSON objects (else one line naming the file: the
+    libraries' own errors name none, or fail later with an AttributeError)."""
+    import json
+
+    for name in MODEL_JSON_FILES:
+        path = folder / name
+        if not path.is_file():
+            continue
+        try:
+            data = json.loads(path.read_bytes())
+        except (OSError, ValueError, RecursionError) as e:  # UnicodeDecodeError and JSONDecodeError included
+            raise DegustaError(f"{key}: {path}: not readable as JSON ({_first_line(e)[:200]})") from None
+        if not isinstance(data, dict):
+            raise DegustaError(f"{key}: {path}: expected a JSON object, got {type(data).__name__}")
+
+
 def check_model_source(model_id_or_path: str, key: str = "model") -> str:
     """A local folder, or a hub id present in the local cache; else DegustaError naming `key`."""
     path = Path(model_id_or_path).expanduser()
     if path.is_dir():
         if not (path / "config.json").is_file():
             raise DegustaError(f"{key}: {path} is a folder without config.json (not a saved model)")
+        _check_json_files(path, key)
         return str(path)
     looks_local = model_id_or_path.startswith((".", "/", "~")) or model_id_or_path.count("/") > 1
     if looks_local:
@@ -159,6 +181,7 @@ def load_adapter(model, adapter: str | Path, trainable: bool = False, key: str =
     if not (path / "adapter_config.json").is_file():
         raise DegustaError(f"{key}: {path} has no adapter_config.json (expected a folder written by "
                            "PeftModel.save_pretrained, e.g. checkpoints/<run>/adapter)")
+    _check_json_files(path, key)
     try:
         with quiet_peft():
             return PeftModel.from_pretrained(model, str(path), is_trainable=trainable)
