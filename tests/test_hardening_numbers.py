@@ -53,7 +53,7 @@ def compare_cfg(tmp_path, small_dataset_dir, predict_cfg):
     return write_yaml(tmp_path / "c.yaml", {
         "dataset": str(small_dataset_dir), "out": str(tmp_path / "cmp"), "contexts": [2], "n_bootstrap": 50,
         "methods": [{"name": "rnd", "config": str(predict_cfg)},
-                    {"name": "rnd2", "config": str(predict_cfg), "set": ["seed=1"]}]})
+                    {"name": "rnd2", "config": str(predict_cfg), "set": ["min_objects=2"]}]})
 
 
 # -- 1. seeds ---------------------------------------------------------------------------------------
@@ -352,3 +352,14 @@ def test_load_config_reports_wrong_types_in_compare_methods(tmp_path):
     path = write_yaml(tmp_path / "c.yaml", {"dataset": "d", "out": "o", "methods": [{"name": ["a"], "config": "x"}]})
     with pytest.raises(DegustaError, match=r"c.yaml: methods\[0\].name: expected a string"):
         load_config(CompareConfig, path)
+
+
+@pytest.mark.parametrize("key", ["seed", "dataset", "split", "episodes", "context", "out"])
+def test_compare_refuses_a_method_override_of_its_own_keys(tmp_path, small_dataset_dir, predict_cfg, capsys, key):
+    """compare gives every run these keys itself: a method's `set: [seed=5]` was silently lost."""
+    cfg = write_yaml(tmp_path / "c2.yaml", {
+        "dataset": str(small_dataset_dir), "out": str(tmp_path / "cmp2"), "contexts": [2], "n_bootstrap": 50,
+        "methods": [{"name": "rnd", "config": str(predict_cfg), "set": [f"{key}=5"]}]})
+    err = run_cli(["compare", "--config", cfg], capsys)
+    assert f"methods entry 'rnd': set: '{key}' is the comparison's own" in err
+    assert not (tmp_path / "cmp2").exists()

@@ -72,6 +72,10 @@ MAX_QUALITATIVE = 100
 """Most random qualitative episodes a comparison draws (each is one image per method)."""
 
 
+COMPARISON_KEYS = ("dataset", "seed", "split", "episodes", "context", "out")
+"""Predict keys `compare` gives every method run itself (a method's `set` may not)."""
+
+
 @dataclass
 class MethodEntry:
     """One row of the comparison: a predictions file, or a predict config to run."""
@@ -94,6 +98,12 @@ class MethodEntry:
             raise DegustaError(f"methods entry {self.name!r}: give exactly one of 'predictions' or 'config'")
         if isinstance(self.config, str):  # a shipped name (or configs/NAME.yaml outside a checkout) works too
             self.config = resolve_or_keep(self.config)
+        for item in self.set:  # these the comparison sets for every method (_runs): an override was lost silently
+            key = str(item).split("=", 1)[0].strip()
+            if key in COMPARISON_KEYS:
+                raise DegustaError(f"methods entry {self.name!r}: set: {key!r} is the comparison's own (every method "
+                                   "runs on its dataset, seed, split, episodes or context lengths and writes under "
+                                   "its out): set it at the top level of the compare config")
 
 
 @dataclass
