@@ -544,9 +544,7 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
     last = run / LAST
     ckpt = None
     if last.exists():
-        if not cfg.resume:
-            raise DegustaError(f"{run}: holds {LAST} from an earlier run; set trainer.resume=true to continue "
-                               f"it or choose another trainer.run_name")
+        _refuse_finished_run(cfg)
         if (run / "config.yaml").exists():
             added = _check_same(read_yaml(run / "config.yaml"), resolved, run / "config.yaml")
             if added:  # keys a newer degusta_learn introduced: the old run had no say in them
@@ -568,6 +566,25 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
                 stale.unlink()
     atomic_write_text(run / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
     return run, ckpt
+
+
+def _check_run_dir(cfg: TrainerConfig) -> None:
+    """The run-folder mistakes `prepare_run_dir` refuses, found without writing anything: a file where a folder
+    of the path should be, or a finished run's last.ckpt with `trainer.resume` false."""
+    run = cfg.path
+    for folder in [run, *run.parents]:
+        if folder.exists() or folder.is_symlink():
+            if not folder.is_dir():
+                raise DegustaError(f"trainer.run_dir: cannot create the run folder {run} ({folder} is a file, not a "
+                                   "folder)")
+            break
+    _refuse_finished_run(cfg)
+
+
+def _refuse_finished_run(cfg: TrainerConfig) -> None:
+    if (cfg.path / LAST).exists() and not cfg.resume:
+        raise DegustaError(f"{cfg.path}: holds {LAST} from an earlier run; set trainer.resume=true to continue "
+                           f"it or choose another trainer.run_name")
 
 
 def _check_same(old: dict, new: dict, where: Path, prefix: str = "") -> dict[str, Any]:
@@ -781,6 +798,7 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
     run folder is touched; a DegustaError before the first checkpoint removes a folder this call created.
     """
     check_trainer(cfg, monitors)
+    _check_run_dir(cfg)  # before the Trainer exists: Lightning prints its banner lines when it is built
     trainer = build_trainer(cfg, cfg.path, callbacks)
     zero = trainer.is_global_zero  # known once the Trainer exists (from the launcher's environment)
     created = _first_missing(cfg.path) if zero else None

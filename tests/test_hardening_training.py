@@ -321,3 +321,11 @@ def test_a_run_from_before_a_new_config_key_resumes_and_says_so(tmp_path, data_r
     assert yaml.safe_load(saved.read_text())["model"]["d_ff"] == 32
     assert train(cfg, "trainer.max_steps=3", "model.d_ff=64") == 2
     assert "cannot resume, 'model.d_ff' was 32 and is now 64" in one_error_line(capsys)
+
+
+def test_a_run_dir_under_a_file_is_one_line_before_lightning_says_anything(tmp_path, data_root, capfd):
+    """The check ran after the Trainer was built: Lightning's GPU/TPU banner and tips came before the error."""
+    (tmp_path / "afile").write_text("x")
+    assert train(learned_yaml(tmp_path, data_root), f"trainer.run_dir={tmp_path / 'afile'}") == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "trainer.run_dir: cannot create the run folder" in err[0] and "is a file" in err[0], err
