@@ -75,3 +75,11 @@ def test_a_backend_without_a_model_says_the_model_is_required(data, tmp_path, ca
 def test_an_unknown_split_names_the_config_and_key(data, tmp_path, capsys):
     code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", "split=foo")
     assert code == 2 and "baseline_population_mean.yaml: split: expected one of" in one_line(err)
+
+
+@pytest.mark.parametrize("url", ["notaurl", "ftp://x", "http://", "file:///etc/passwd"])
+def test_a_base_url_that_is_not_http_is_refused(data, tmp_path, capsys, url):
+    """It reached the client, which retried 'Connection error.' before the run stopped."""
+    code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", f"backend.base_url={url}",
+                        "dry_run=true", config="zeroshot_mogma_gpt4o")
+    assert code == 2 and "backend.base_url: expected an http(s) URL" in one_line(err)

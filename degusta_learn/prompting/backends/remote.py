@@ -41,6 +41,11 @@ class RemoteConfig(BackendConfig):
         super().__post_init__()
         if self.timeout <= 0:
             raise DegustaError(f"backend.timeout: expected > 0, got {self.timeout}")
+        if self.base_url is not None:
+            url = urlparse(self.base_url) if isinstance(self.base_url, str) else None
+            if url is None or url.scheme not in ("http", "https") or not url.hostname:
+                raise DegustaError(f"backend.base_url: expected an http(s) URL such as http://127.0.0.1:8000/v1, "
+                                   f"got {str(self.base_url)[:200]!r}")
 
 
 def is_loopback(base_url: str | None) -> bool:
