@@ -188,6 +188,9 @@ def check_output_file(out: str | os.PathLike, inputs: Iterable[tuple[str, Any]] 
     Probing makes and removes one temporary file in the output's folder when that folder exists."""
     if str(out).strip() in ("", "."):
         raise DegustaError(f"{key}: the output path is empty; give the path of a file to write")
+    if isinstance(out, str) and out.endswith(("/", os.sep)):
+        raise DegustaError(f"{key}: {out} ends in a slash, a folder; give the path of a file to write (e.g. "
+                           f"{out}predictions.jsonl)")
     path = Path(out)
     problem = target_problem(path)
     if problem:

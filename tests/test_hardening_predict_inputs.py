@@ -83,3 +83,10 @@ def test_a_base_url_that_is_not_http_is_refused(data, tmp_path, capsys, url):
     code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", f"backend.base_url={url}",
                         "dry_run=true", config="zeroshot_mogma_gpt4o")
     assert code == 2 and "backend.base_url: expected an http(s) URL" in one_line(err)
+
+
+def test_an_out_ending_in_a_slash_is_refused(data, tmp_path, capsys):
+    """out=newdir/ wrote a file called newdir."""
+    code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'newdir'}/", "split=all", "context=2")
+    assert code == 2 and "ends in a slash" in one_line(err)
+    assert not (tmp_path / "newdir").exists()
