@@ -322,6 +322,10 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+_BOOL_HINT = (" (YAML reads an unquoted on, off, yes, no, true or false as a boolean: write the word in quotes, "
+              "e.g. --set \"key='off'\")")
+
+
 def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
     origin = get_origin(tp)
     if tp is Any:
@@ -343,7 +347,8 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
         choices = get_args(tp)
         # `True == 1` and `1 == 1.0` in Python: a choice matches only a value of its own type.
         if not any(type(value) is type(c) and value == c for c in choices):
-            raise DegustaError(f"{where}: {key}: expected one of {list(choices)}, got {_show(value)}")
+            hint = _BOOL_HINT if isinstance(value, bool) and any(isinstance(c, str) for c in choices) else ""
+            raise DegustaError(f"{where}: {key}: expected one of {list(choices)}, got {_show(value)}{hint}")
         return value
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
@@ -385,7 +390,8 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
             # another file or model than the one written. Refuse and ask for quotes.
             raise DegustaError(f"{where}: {key}: expected a string, got the number {_show(value)} "
                                "(write it in quotes if you mean the text)")
-        raise DegustaError(f"{where}: {key}: expected a string, got {_kind(value)} {_show(value)}")
+        hint = _BOOL_HINT if isinstance(value, bool) else ""
+        raise DegustaError(f"{where}: {key}: expected a string, got {_kind(value)} {_show(value)}{hint}")
     else:
         return value
     raise DegustaError(f"{where}: {key}: expected {_name(tp)}, got {_show(value)}")

@@ -118,3 +118,20 @@ def test_choices_of_dataclasses_built_in_python_are_checked_like_the_loader_does
     with pytest.raises(DegustaError, match=r"^backend.detail: expected one of \['low', 'high', 'auto'\]"):
         OpenAIConfig(detail="medium")
     assert OpenAIConfig(detail=None).detail is None and OpenAIConfig(detail="low").detail == "low"
+
+
+def test_an_unquoted_yaml_boolean_where_a_word_is_expected_says_to_quote_it():
+    """`--set cache=off` is the boolean False in YAML: the message said so but not what to do."""
+    from degusta_learn.config import from_dict
+
+    @dataclass
+    class C:
+        cache: str = "auto"
+        mode: Literal["on", "off"] = "on"
+
+    for data in ({"cache": False}, {"mode": True}):
+        with pytest.raises(DegustaError, match="write the word in quotes"):
+            from_dict(C, data, "c.yaml")
+    with pytest.raises(DegustaError) as e:
+        from_dict(C, {"cache": 5}, "c.yaml")
+    assert "write the word in quotes" not in str(e.value)
