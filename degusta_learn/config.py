@@ -188,8 +188,13 @@ def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[s
             value = raw
         except _YamlDuplicateKey as e:
             raise DegustaError(f"--set {key}: duplicate key {_show(e.key)} in the value; give each key once") from None
-        except (_YamlTooLarge, RecursionError, ValueError, OverflowError) as e:
-            raise DegustaError(f"--set {key}: refused value ({' '.join(str(e).split())[:120] or 'too deep'})") from None
+        except RecursionError:
+            raise DegustaError(f"--set {key}: refused value (nested too deeply)") from None
+        except (ValueError, OverflowError) as e:
+            why = "a number with too many digits" if "digits" in str(e) else " ".join(str(e).split())[:120]
+            raise DegustaError(f"--set {key}: refused value ({why})") from None
+        except _YamlTooLarge as e:
+            raise DegustaError(f"--set {key}: refused value ({' '.join(str(e).split())[:120] or 'too large'})") from None
         node = out
         parts = key.strip().split(".")
         for part in parts[:-1]:

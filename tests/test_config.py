@@ -135,3 +135,13 @@ def test_an_unquoted_yaml_boolean_where_a_word_is_expected_says_to_quote_it():
     with pytest.raises(DegustaError) as e:
         from_dict(C, {"cache": 5}, "c.yaml")
     assert "write the word in quotes" not in str(e.value)
+
+
+@pytest.mark.parametrize("raw, message", [("9" * 5000, "a number with too many digits"),
+                                          ("[" * 5000, "nested too deeply")])
+def test_a_set_value_refused_by_the_parser_says_why_in_words(raw, message):
+    """Was Python's text cut mid-word ("use sys.set_int_max_str_digits() t") or "maximum recursion depth"."""
+    from degusta_learn.config import apply_overrides
+
+    with pytest.raises(DegustaError, match=rf"^--set seed: refused value \({message}\)$"):
+        apply_overrides({}, [f"seed={raw}"])
