@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from degusta_learn.config import from_dict
+from degusta_learn.config import bounded, from_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json, read_json
 from degusta_learn.render.grid import Grid
@@ -105,7 +105,7 @@ class FinetuneRecord:
     """Image groups sent and groups composed into one canvas (`data.include`, `data.compose`)."""
     image_size: int | None
     """The processor's image budget (`model.image_size`; null: the model's default)."""
-    render_size: int
+    render_size: int = bounded(lo=16, hi=4096)
     """Pixels per side the lifted images were drawn at (`data.render_size`)."""
     processor_size: dict[str, Any]
     """The image processor's `size` after the budget was set (for reference)."""
@@ -131,7 +131,7 @@ class BaseRecord:
     parameters: int
     image_size: int
     """The model's image size (the processor's budget)."""
-    render_size: int
+    render_size: int = bounded(lo=16, hi=4096)
     """Pixels per side the images were drawn at in pretraining (= image_size: no resizing)."""
     tokens_per_image: int
     grid: Grid
