@@ -139,6 +139,9 @@ def test_base_record_round_trip_and_the_unversioned_base_file_still_reads(tmp_pa
     base.check_prediction("any", {"p000"}, 256)  # a base saw no participant: only the render size counts
     with pytest.raises(DegustaError, match="image_size: .* 256 px .* set image_size=256"):
         base.check_prediction("any", {"p000"}, 448)
+    (tmp_path / BASE_FILE).write_text(json.dumps({**unversioned, "render_size": -256}))
+    with pytest.raises(DegustaError, match="render_size: expected a value from 16 to 4,096, got -256"):
+        read_record(tmp_path / BASE_FILE)  # was echoed back later as "set image_size=-256"
 
 
 def test_check_prediction_lets_unseen_participants_through(adapter, naturalistic_ids):
