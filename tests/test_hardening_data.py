@@ -200,6 +200,10 @@ VALIDATION_CASES = [
     ("ratings.jsonl", lambda r: r.update(b_initial="90"), "ratings.jsonl:3: field 'b_initial': expected a number, got '90'"),
     ("ratings.jsonl", lambda r: r.update(rmsd_jitter=-0.1), "ratings.jsonl:3: field 'rmsd_jitter': RMSD -0.1 is negative"),
     ("ratings.jsonl", lambda r: r.update(trial="0"), "ratings.jsonl:3: field 'trial': expected an integer"),
+    # a rating of no arrangement, or one rated twice, were accepted and scored by evaluate
+    ("ratings.jsonl", lambda r: r.update(participant="zzz"), "ratings.jsonl:3: field 'trial': participant 'zzz' has no trial 0"),
+    ("ratings.jsonl", lambda r: r.update(trial=99), "ratings.jsonl:3: field 'trial': participant 'p002' has no trial 99"),
+    ("ratings.jsonl", lambda r: r.update(participant="p001"), "ratings.jsonl:3: field 'trial': participant 'p001' trial 0 is rated twice"),
 ]
 
 

@@ -105,7 +105,7 @@ def load_dataset(root: str | Path) -> Dataset:
                                        catalog, tables, meta.get("min_objects", DEFAULT_MIN_OBJECTS))
     ratings = None
     if _present(root / "ratings.jsonl"):
-        ratings = _parse_ratings(read_jsonl(root / "ratings.jsonl"), root / "ratings.jsonl")
+        ratings = _parse_ratings(read_jsonl(root / "ratings.jsonl"), root / "ratings.jsonl", arrangements)
     return Dataset(catalog, tables, arrangements, ratings, meta, root)
 
 
@@ -144,7 +144,8 @@ def validate_dataset(ds: Dataset) -> Dataset:
     _parse_arrangements(((i, a.to_json()) for i, a in enumerate(ds.arrangements, start=1)),
                         base / "arrangements.jsonl", catalog, tables, meta.get("min_objects", DEFAULT_MIN_OBJECTS))
     if ds.ratings is not None:
-        _parse_ratings(((i, r.to_json()) for i, r in enumerate(ds.ratings, start=1)), base / "ratings.jsonl")
+        _parse_ratings(((i, r.to_json()) for i, r in enumerate(ds.ratings, start=1)), base / "ratings.jsonl",
+                       ds.arrangements)
     return ds
 
 
@@ -348,8 +349,10 @@ def _parse_arrangements(lines, path: Path, catalog: Catalog, tables: dict[int, T
     return out
 
 
-def _parse_ratings(lines, path: Path) -> list[Rating]:
-    out = []
+def _parse_ratings(lines, path: Path, arrangements=None) -> list[Rating]:
+    """ratings.jsonl: one jitter-study trial per arrangement (with `arrangements`, each must be one of them)."""
+    out, seen = [], set()
+    known = {(a.participant, a.trial) for a in arrangements} if arrangements is not None else None
     for lineno, entry in lines:
         w = Where(path, line=lineno)
         require_mapping(entry, w)
@@ -364,5 +367,11 @@ def _parse_ratings(lines, path: Path) -> list[Rating]:
             if v is not None and v < 0:
                 raise w.fail(key, f"RMSD {v} is negative")
             vals[key] = v
-        out.append(Rating(get(entry, "participant", "id", w), get(entry, "trial", "int", w, lo=0, hi=MAX_TRIAL), **vals))
+        participant, trial = get(entry, "participant", "id", w), get(entry, "trial", "int", w, lo=0, hi=MAX_TRIAL)
+        if (participant, trial) in seen:
+            raise w.fail("trial", f"participant {participant!r} trial {trial} is rated twice")
+        if known is not None and (participant, trial) not in known:
+            raise w.fail("trial", f"participant {participant!r} has no trial {trial} in arrangements.jsonl")
+        seen.add((participant, trial))
+        out.append(Rating(participant, trial, **vals))
     return out
