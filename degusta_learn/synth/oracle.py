@@ -35,12 +35,17 @@ class OracleConfig(PredictConfig):
     """Latent styles file; unset = the dataset's own (meta.json "latent_styles", else latent_styles.json)."""
 
 
+def _own_styles(ds: Dataset) -> Path:
+    """The dataset folder's latent styles file (meta.json "latent_styles", else latent_styles.json)."""
+    return ds.root / str(ds.meta.get("latent_styles") or STYLES_FILE)
+
+
 def styles_path(ds: Dataset, override: str | None = None) -> Path:
     """Where the dataset's latent styles are; DegustaError if there are none."""
     if override:
         path = Path(override)
     elif ds.root is not None:
-        path = ds.root / str(ds.meta.get("latent_styles") or STYLES_FILE)
+        path = _own_styles(ds)
     else:
         raise DegustaError("oracle needs a synthetic dataset with latent styles (this dataset has no folder)")
     if not path.is_file():
@@ -61,7 +66,7 @@ def dataset_styles(ds: Dataset) -> dict[str, Style] | None:
     """The dataset folder's latent styles, each checked and its objects found in the catalog; None if it has none."""
     if ds.root is None:
         return None
-    path = ds.root / str(ds.meta.get("latent_styles") or STYLES_FILE)
+    path = _own_styles(ds)
     if not os.path.lexists(path):
         return None
     styles = read_styles(path)

@@ -99,9 +99,13 @@ def check_model_source(model_id_or_path: str, key: str = "model") -> str:
 
 def load_processor(model_id_or_path: str, key: str = "model"):
     offline()
+    return _processor_from(check_model_source(model_id_or_path, key), model_id_or_path, key)
+
+
+def _processor_from(source: str, model_id_or_path: str, key: str):
+    """The processor of a checked `source` (check_model_source's answer for `model_id_or_path`)."""
     from transformers import AutoProcessor
 
-    source = check_model_source(model_id_or_path, key)
     try:
         processor = AutoProcessor.from_pretrained(source, local_files_only=True)
     except Exception as e:  # a missing, corrupt or foreign file: whatever the library raises, one line
@@ -136,7 +140,7 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     section = key.rpartition(".")[0]  # backend.model -> backend.device, backend.dtype
     device = resolve_device(device, f"{section}.device" if section else "device")
     torch_dtype = resolve_dtype(dtype, device, f"{section}.dtype" if section else "dtype")
-    processor = load_processor(source, key)
+    processor = _processor_from(source, model_id_or_path, key)  # the folder's files were checked above
     extra = {}
     if quantization_config is not None:
         extra = {"quantization_config": quantization_config, "device_map": {"": device}}

@@ -119,14 +119,14 @@ def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list
 
 
 def _run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    model, hp = load_model(cfg.checkpoint, resolve_device(cfg.device, "device"))
+    ckpt = str(resolve_checkpoint(cfg.checkpoint))
+    model, hp = load_model(ckpt, resolve_device(cfg.device, "device"))
     model.vocab.check_catalog(ds.catalog, f"{cfg.dataset}/catalog.json")
     if isinstance(hp.get("trained_on"), dict):  # checkpoints before it recorded its split: unchecked
         from degusta_learn.scene.dataset import dataset_identity
         from degusta_learn.vlm.record import TrainingData
 
-        TrainingData(**hp["trained_on"]).check_unseen(dataset_identity(ds), {e.participant for e in episodes},
-                                                      str(resolve_checkpoint(cfg.checkpoint)))
+        TrainingData(**hp["trained_on"]).check_unseen(dataset_identity(ds), {e.participant for e in episodes}, ckpt)
     with torch.no_grad():
         return predict_episodes(model, ds, episodes, hp["population"], hp.get("min_objects", 1), cfg.batch_size,
-                                diagnostics={"checkpoint": str(resolve_checkpoint(cfg.checkpoint))})
+                                diagnostics={"checkpoint": ckpt})
