@@ -6,13 +6,15 @@ same episodes and against `population_mean`:
 
 - **steps**: the paper's aggregation, what predict wrote (`prompting.aggregate.aggregate`: the mode length,
   per step the mode type and id);
-- **votes**: objects ranked by how many answers name them (ties: the earlier mean step), as many as the median
-  answer's length, each at the weighted mean of its cells over those answers, ordered by their mean step;
+- **votes**: predict's `aggregation: votes` (`prompting.aggregate.aggregate_votes`): objects ranked by how many
+  answers name them (ties: the earlier mean step), as many as the median answer's length, each at the weighted
+  mean of its cells over those answers, ordered by their mean step;
 - **greedy + votes**: the greedy answer's objects and places, lengthened to the sampled answers' median length by
   the best-voted objects it lacks (never shortened): the greedy answer's places, the samples' count.
 
-A research script for one question (can a decoding-side length fix the count error without losing Kabsch RMSD?),
-not a predict option: point 35 records why none is one.
+A research script for one question (can a decoding-side length fix the count error without losing Kabsch RMSD?);
+of its three ways, `votes` became a predict option (points 35 and 37 record why), greedy + votes needs a second,
+greedy run and stays here.
 
 Usage:
     degusta predict --config configs/predict_hf_base_finetuned.yaml --set backend.adapter=RUN/adapter \\
@@ -25,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections import defaultdict
 
 import numpy as np
 
@@ -48,47 +49,22 @@ def parsed_answers(prediction, catalog, grid) -> list[list]:
 
 
 def median_length(answers: list[list]) -> int:
-    """The median of the answers' lengths, rounded (the samples' count; at least 1)."""
+    """The median of the answers' lengths, rounded (the samples' count; at least 1: fixed_length.py's grammar length)."""
     return max(1, int(round(np.median([len(a) for a in answers]))))
 
 
-def voted(answers: list[list]) -> tuple[dict[int, list], list[int]]:
-    """id -> [(step, item)] over the answers, and the ids by decreasing votes (ties: the earlier mean step)."""
-    votes: dict[int, list] = defaultdict(list)
-    for items in answers:
-        for step, it in enumerate(items):
-            votes[it.id].append((step, it))
-    ranked = sorted(votes, key=lambda i: (-len(votes[i]), np.mean([s for s, _ in votes[i]])))
-    return votes, ranked
-
-
-def placed(oid: int, votes: dict[int, list], grid):
-    from degusta_learn.render.grid import circular_mean, direction_to_rotation
-    from degusta_learn.scene import Placement
-
-    items = [it for _, it in votes[oid]]
-    x, y = grid.decode_weighted([it.cells for it in items])
-    rotation = circular_mean([direction_to_rotation(it.direction) for it in items]) % 360.0
-    return Placement(object=int(oid), x=float(x), y=float(y), rotation=float(rotation))
-
-
-def by_votes(answers: list[list], grid) -> list:
-    if not answers:
-        return []
-    votes, ranked = voted(answers)
-    length = median_length(answers)
-    chosen = sorted(ranked[:length], key=lambda i: np.mean([s for s, _ in votes[i]]))
-    return [placed(i, votes, grid) for i in chosen]
-
-
 def greedy_plus_votes(greedy: list, answers: list[list], grid) -> list:
+    """The greedy answer, lengthened (never shortened) to the answers' median length by the best-voted objects
+    it lacks, each where the answers naming it put it."""
+    from degusta_learn.prompting.aggregate import aggregate_votes, object_votes, placed
+
     if not answers:
         return list(greedy)
-    votes, ranked = voted(answers)
-    length = median_length(answers)
+    length = aggregate_votes(answers, "grid", grid)[1]["length"]
+    named, _, ranked = object_votes(answers)
     have = {p.object for p in greedy}
     extra = [i for i in ranked if i not in have][: max(0, length - len(greedy))]
-    return list(greedy) + [placed(i, votes, grid) for i in extra]
+    return list(greedy) + [placed(i, named[i], "grid", grid) for i in extra]
 
 
 def main() -> None:
@@ -105,6 +81,7 @@ def main() -> None:
 
     from degusta_learn.methods import get_method
     from degusta_learn.metrics import paired_bootstrap, score_many
+    from degusta_learn.prompting.aggregate import aggregate_votes
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset, read_episodes, read_predictions
 
@@ -123,7 +100,8 @@ def main() -> None:
     rows = {
         "greedy (n 1)": [greedy[i] for i in order],
         "steps (the paper's, as predicted)": [sampled[i] for i in order],
-        "votes": [dataclasses.replace(sampled[i], placements=by_votes(answers[i], grid)) for i in order],
+        "votes": [dataclasses.replace(sampled[i], placements=aggregate_votes(answers[i], "grid", grid)[0])
+                  for i in order],
         "greedy + votes": [dataclasses.replace(greedy[i], placements=greedy_plus_votes(
             greedy[i].placements, answers[i], grid)) for i in order],
     }

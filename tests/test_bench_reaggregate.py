@@ -1,7 +1,9 @@
-"""benchmarks/reaggregate.py: the vote and greedy + vote combinations of sampled answers."""
+"""benchmarks/reaggregate.py: the vote (predict's `aggregation: votes`, which the script now calls) and greedy + vote
+combinations of sampled answers, on the answers and hand-computed plans the script was first checked with."""
 
 from benchmark_support import load_benchmark
 
+from degusta_learn.prompting.aggregate import aggregate_votes
 from degusta_learn.prompting.answers import AnswerItem
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Placement
@@ -17,14 +19,13 @@ ANSWERS = [[item(1, "A1"), item(2, "B2"), item(3, "C3")],
 
 
 def test_votes_take_the_median_length_of_the_most_named_objects_in_their_mean_order():
-    bench = load_benchmark("reaggregate")
-    plan = bench.by_votes(ANSWERS, Grid(8, 8))
+    plan = aggregate_votes(ANSWERS, "grid", Grid(8, 8))[0]
     # the median length is 4: 1 and 2 (3 votes), 4 (2), then 3 (1 vote, at step 2: before 5 and 6, at step 3);
     # in the order of their mean steps (0.33, 1.0, 1.5, 2)
     assert [p.object for p in plan] == [1, 2, 4, 3]
     one = Grid(8, 8).decode_weighted([["A1"], ["A3"], ["A1"]])
     assert (plan[0].x, plan[0].y) == (float(one[0]), float(one[1]))  # the mean of its cells over the answers
-    assert bench.by_votes([], Grid(8, 8)) == []
+    assert aggregate_votes([], "grid", Grid(8, 8))[0] == []
 
 
 def test_greedy_plus_votes_keeps_the_greedy_answer_and_only_lengthens_it():
@@ -35,3 +36,4 @@ def test_greedy_plus_votes_keeps_the_greedy_answer_and_only_lengthens_it():
     long = [Placement(object=k, x=0.5, y=0.5, rotation=0.0) for k in range(10, 16)]
     assert bench.greedy_plus_votes(long, ANSWERS, Grid(8, 8)) == long  # never shortened
     assert bench.greedy_plus_votes(greedy, [], Grid(8, 8)) == greedy
+    assert bench.median_length(ANSWERS) == 4 and bench.median_length([[], []]) == 1  # fixed_length's (at least 1)

@@ -82,8 +82,10 @@ def test_validation_batches_by_eval_batch_size(tiny, monkeypatch):
     assert _module(tiny).cfg.eval.batch_size is None  # data.batch_size then
 
 
-def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_path):
-    """eval.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers."""
+@pytest.mark.parametrize("aggregation", ["steps", "votes"])
+def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_path, aggregation):
+    """eval.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers
+    (`eval.aggregation` as predict's `aggregation`)."""
     from degusta_learn.prompting.runner import ZeroShotConfig, ZeroShotRun
     from degusta_learn.scene import save_dataset
 
@@ -102,19 +104,20 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
         return [[Completion(t, 10, 10, {}) for t in texts] for _ in prompts]
 
     monkeypatch.setattr("degusta_learn.vlm.generate.generate_batch", scripted)
-    module = _module(tiny, n=4)
+    module = _module(tiny, n=4, aggregation=aggregation)
     row = module.score_batch([ex], True, [7])[0]
     assert seen == {"n": 4, "temperature": 1.0, "seeds": [module.cfg.seed + 7], "on_repeat": "skip"}
 
     cfg = ZeroShotConfig(dataset=str(save_dataset(ds, tmp_path / "data")), out=str(tmp_path / "p.jsonl"),
-                         method="mogma", n=4, cache="off")
+                         method="mogma", n=4, cache="off", aggregation=aggregation)
     ep = next(e for e in examples(context=2, split="val").episodes if e.id == ex.episode)
     pred = ZeroShotRun(cfg, ds).predict(ep, [Completion(t, 10, 10, {}) for t in texts], {}, cached=0)
     expected = score_prediction(ds.catalog, gt, pred.placements, pred.failed)
     assert row["placements"] == pred.placements and row["parsed"] == 0.75
     assert (row["set_rmsd"], row["acc"], row["n_matched"]) == (expected.set_rmsd, expected.object_accuracy,
                                                                 expected.n_matched)
-    assert len(pred.placements) == len(truth) - 1  # the mode length: a real aggregate, not the first answer
+    # the mode length (steps) or the median length (votes): a real aggregate, not the first answer
+    assert len(pred.placements) == len(truth) - 1 and pred.diagnostics["aggregation"] == aggregation
 
 
 def test_eval_temperature_defaults():

@@ -6,7 +6,8 @@ import math
 
 import pytest
 
-from degusta_learn.prompting.aggregate import aggregate
+from degusta_learn.errors import DegustaError
+from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, combine
 from degusta_learn.prompting.answers import AnswerItem
 from degusta_learn.render.grid import Grid
 
@@ -86,3 +87,62 @@ def test_zero_length_mode_gives_an_empty_unfailed_prediction():
 def test_rotation_is_normalized_and_finite():
     placements, _ = aggregate([[U("cup", 1, 0.5, 0.5, 300)], [U("cup", 1, 0.5, 0.5, 320)]], "unmarked")
     assert placements[0].rotation == pytest.approx(310.0) and math.isfinite(placements[0].rotation)
+
+
+# ----------------------------------------------------------------------------- object votes
+
+
+def test_votes_take_the_most_named_objects_in_their_mean_order():
+    """Three answers naming the same objects in different orders: the paper's per-step modes mix them up, the
+    votes keep each object whole (hand-computed)."""
+    responses = [
+        [Gi("cup", 1, ["A1"], "N"), Gi("plate", 2, ["B2"], "N"), Gi("fork", 3, ["C3"], "E")],
+        [Gi("plate", 2, ["B3"], "N"), Gi("cup", 1, ["A1"], "S"), Gi("fork", 3, ["C3"], "E")],
+        None,  # unparseable: no vote, no length
+        [Gi("plate", 2, ["B2"], "N"), Gi("fork", 3, ["C4"], "E"), Gi("cup", 1, ["A2"], "N"), Gi("knife", 4, ["D1"], "W")],
+    ]
+    placements, diag = combine(responses, "grid", G, how="votes")
+    assert diag["aggregation"] == "votes" and diag["n_parsed"] == 3 and diag["length"] == 3  # median of 3, 3, 4
+    assert diag["length_agreement"] == pytest.approx(2 / 3, abs=1e-4)
+    # votes 3, 3, 3, 1 (knife out); mean steps: plate (1+0+0)/3, cup (0+1+2)/3, fork (2+2+1)/3
+    assert [p.object for p in placements] == [2, 1, 3]
+    assert [o["votes"] for o in diag["objects"]] == [3, 3, 3]
+    plate = placements[0]  # each answer's centroid weighs the same: B2, B3, B2
+    assert plate.x == pytest.approx(centre("B2")[0])
+    assert plate.y == pytest.approx((2 * centre("B2")[1] + centre("B3")[1]) / 3)
+    cup = placements[1]    # N, S, N: the circular mean of 0, 180, 0 is 0
+    assert min(cup.rotation, 360 - cup.rotation) < 1e-6
+    # the paper's aggregation of the same answers: step 0's mode is the plate; step 1's types tie (plate, cup,
+    # fork) and the first seen, the plate, is placed already: the step is dropped and the cup lost; step 2: fork
+    steps, sdiag = combine(responses, "grid", G)
+    assert sdiag["aggregation"] == "steps" and [p.object for p in steps] == [2, 3] and sdiag["dropped_steps"] == [1]
+
+
+def test_votes_break_ties_by_mean_step_then_first_seen_and_stop_at_the_median_length():
+    responses = [
+        [U("cup", 1, 0.1, 0.1, 0), U("fork", 5, 0.5, 0.5, 0)],
+        [U("spoon", 7, 0.7, 0.7, 0), U("cup", 1, 0.1, 0.2, 0)],
+        [U("knife", 9, 0.9, 0.9, 0)],
+    ]
+    placements, diag = aggregate_votes(responses, "unmarked")
+    # median length 2; cup has 2 votes, then spoon (mean step 0) and knife (0) tie before fork (1): spoon seen first
+    assert diag["length"] == 2 and [p.object for p in placements] == [7, 1]  # ordered by mean step: 0 vs 0.5
+    assert placements[1].y == pytest.approx(0.15)
+
+
+def test_votes_where_every_answer_fails_or_most_are_empty():
+    placements, diag = aggregate_votes([None, None], "grid", G)
+    assert placements == [] and diag["failed"]
+    placements, diag = aggregate_votes([[], [], [U("cup", 1, 0.5, 0.5, 0)]], "unmarked")
+    assert placements == [] and not diag["failed"] and diag["length"] == 0  # as the paper's: most answers empty
+
+
+def test_one_answer_is_its_own_vote():
+    answer = [U("plate", 80, 0.5, 0.5, 10), U("cup", 1, 0.7, 0.3, 200), U("fork", 30, 0.2, 0.5, 90)]
+    placements, _ = aggregate_votes([answer], "unmarked")
+    assert [(p.object, p.x, p.y) for p in placements] == [(it.id, *it.position) for it in answer]
+
+
+def test_unknown_aggregation_is_refused():
+    with pytest.raises(DegustaError, match="aggregation: expected one of"):
+        combine([], "grid", G, how="vote")

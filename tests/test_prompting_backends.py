@@ -101,6 +101,39 @@ def test_replay_reproduces_a_run_without_calls(tmp_path):
     assert ledger["cost_usd"] == 0
 
 
+def test_predict_aggregates_by_votes_from_the_same_answers(tmp_path):
+    """`aggregation: votes` through predict: three recorded answers naming the same objects in other orders; the
+    paper's per-step modes lose one, the votes keep all three, in their mean order; a misspelt choice is refused
+    naming the key."""
+    ds = make_small_dataset(n_participants=3, n_trials=3)
+    data = save_dataset(ds, tmp_path / "data")
+    episodes = make_episodes(ds, 2, "all")
+    cup, plate, fork = (ds.catalog.of_type(t)[0].id for t in ("cup", "plate", "fork"))
+
+    def item(type_, oid, cell):
+        return f"{{'type': '{type_}', 'id': {oid}, 'position': ['{cell}'], 'cardinal_direction': 'N'}}"
+
+    orders = [[("cup", cup, "A1"), ("plate", plate, "B2"), ("fork", fork, "C3")],
+              [("plate", plate, "B2"), ("cup", cup, "A1"), ("fork", fork, "C3")],
+              [("plate", plate, "B2"), ("fork", fork, "C3"), ("cup", cup, "A1")]]
+    answers = tmp_path / "answers.jsonl"
+    answers.write_text("".join(json.dumps({"episode": ep.id, "sample": i,
+                                           "text": "[" + ", ".join(item(*it) for it in order) + "]"}) + "\n"
+                               for ep in episodes for i, order in enumerate(orders)))
+    base = [f"dataset={data}", "context=2", "split=all", "n=3", "image_size=64", "method=mogma",
+            "backend.name=replay", f"backend.path={answers}"]
+    got = {}
+    for how in ("steps", "votes"):
+        out = run_predict(None, base + [f"aggregation={how}", f"out={tmp_path / how / 'predictions.jsonl'}"])
+        got[how] = read_predictions(out, ds.catalog)
+        assert all(p.diagnostics["aggregation"] == how for p in got[how])
+    assert [p.object for p in got["steps"][0].placements] == [plate, fork]  # step 1's tie: the plate again
+    assert [p.object for p in got["votes"][0].placements] == [plate, cup, fork]  # mean steps 0.33, 1, 1.67
+    with pytest.raises(DegustaError, match="aggregation"):
+        run_predict(None, base + ["aggregation=vote", f"out={tmp_path / 'bad' / 'predictions.jsonl'}"])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_prices_and_image_tokens():
     assert price("gpt-4o") == (2.5, 10.0) and price("gpt-4o-2024-08-06") == (2.5, 10.0)
     assert price("gpt-4o-mini-2024-07-18") == (0.15, 0.6)        # longest prefix wins

@@ -144,6 +144,9 @@ class EvalConfig:
     n: int = bounded(1, 1, 64)
     """Answers per validation episode: 1 = one answer, as before; > 1 = n sampled answers aggregated exactly as
     `degusta predict` aggregates them (prompting/aggregate.py), the aggregate then scored (n x the generation)."""
+    aggregation: Literal["steps", "votes"] = "steps"
+    """n > 1: how the answers become one plan, as predict's `aggregation` (steps: the paper's; votes: the objects
+    most answers name, as many as the median answer's length)."""
     temperature: float | None = bounded(None, 0.0, 10.0)
     """Sampling temperature of the validation answers; null: 0 (greedy) at n = 1, 1.0 (predict's default) at
     n > 1. Samples are seeded by `seed` and the episode's position, so a validation is reproducible."""

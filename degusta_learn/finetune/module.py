@@ -4,8 +4,8 @@
 held-out (val) participants: each answer is parsed, aggregated and scored like any method's prediction.
 The answers of `eval.batch_size` episodes come from one left-padded `generate` call
 (`vlm.generate.generate_batch`); with `eval.n > 1` each episode gets n answers sampled at `eval.temperature`,
-aggregated by predict's own `prompting.aggregate.aggregate`, and the aggregate is scored. The first
-`eval.log_images` episodes are drawn as ground truth vs prediction (rank 0: <run>/val_images/step_<N>/ and
+aggregated by predict's own `prompting.aggregate.combine` (`eval.aggregation`), and the aggregate is scored. The
+first `eval.log_images` episodes are drawn as ground truth vs prediction (rank 0: <run>/val_images/step_<N>/ and
 TensorBoard image summaries). Logged per validation (besides val/loss):
 
 - val/set_rmsd: the set-aware score (metrics/set_score.py; every unmatched object costs SET_PENALTY, a
@@ -142,14 +142,14 @@ class FinetuneModule(L.LightningModule):
         return [self.score_answers(ex, [c.text for c in completions]) for ex, completions in zip(examples, answers)]
 
     def score_answers(self, ex, texts: list[str]) -> dict:
-        """Score the answers `texts` to `ex`: parsed, aggregated (`prompting.aggregate.aggregate`, predict's own
-        function) and the aggregate scored against the ground truth. `parsed` is the share of answers that
-        parse. The per-field counts compare the answer's items (n = 1) or, for n > 1, the aggregated plan
+        """Score the answers `texts` to `ex`: parsed, aggregated (`prompting.aggregate.combine`, predict's own
+        function, by `eval.aggregation`) and the aggregate scored against the ground truth. `parsed` is the share
+        of answers that parse. The per-field counts compare the answer's items (n = 1) or, for n > 1, the aggregated plan
         written as an answer (`answer_items`: the cells its placements cover)."""
         from degusta_learn.finetune.field_scores import field_counts
         from degusta_learn.metrics import score_prediction
         from degusta_learn.prompting import AnswerParseError, parse_answer
-        from degusta_learn.prompting.aggregate import aggregate
+        from degusta_learn.prompting.aggregate import combine
         from degusta_learn.prompting.answers import answer_items
 
         parsed = []
@@ -158,7 +158,7 @@ class FinetuneModule(L.LightningModule):
                 parsed.append(parse_answer(text, self.kind, self.ds.catalog, self.grid))
             except AnswerParseError:
                 parsed.append(None)
-        placements, diag = aggregate(parsed, self.kind, self.grid)
+        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation)
         gt = self.ds.arrangement(ex.participant, ex.target)
         s = score_prediction(self.ds.catalog, gt, placements, diag["failed"])
         items = parsed[0] if len(parsed) == 1 else (

@@ -1,5 +1,7 @@
-"""Combine n sampled answers into one task plan (DESIGN.md section 4, the paper's appendix A).
+"""Combine n sampled answers into one task plan: the paper's per-step aggregation (DESIGN.md section 4, the paper's
+appendix A; `aggregation: steps`, predict's default) or object votes (`aggregation: votes`).
 
+The paper's, `aggregate`:
 - plan length = mode of the lengths of the parsed responses;
 - for each step s: type = mode of the types at step s (over responses that have a step s); object id =
   mode of the ids among the responses of that type at step s;
@@ -13,8 +15,19 @@ frequent unused id of that type at that step; if every candidate is used, the st
 object cannot be placed twice). Unparseable responses are `None`; if all are, the result is empty and
 `diagnostics["failed"]` is True (never an exception).
 
+Object votes, `aggregate_votes` (docs/tiny_base.md points 35 and 37: a small fine-tuned model names the same
+objects in different orders across its samples, so a step's mode mixes different objects):
+
+- plan length = median of the lengths of the parsed responses (rounded half to even; 0 where most are empty);
+- objects = that many ids, ranked by how many responses name them (ties: the lower mean step, then the one seen
+  first), placed in the order of their mean step;
+- each object's position and rotation combine every response that names it, as above.
+
+An answer names an object at most once (`read_answer` drops an item naming one again), so a vote is one answer's.
+
 Example:
     placements, diag = aggregate([parse_answer(t, "grid", catalog, grid) for t in texts], "grid", grid)
+    placements, diag = combine(parsed, "grid", grid, how="votes")
 """
 
 from __future__ import annotations
@@ -36,6 +49,74 @@ def _ranked(values: list) -> list:
     return sorted(counts, key=lambda v: (-counts[v], first[v]))
 
 
+AGGREGATIONS = ("steps", "votes")
+"""How n answers become one plan: the paper's per-step modes, or object votes (module docstring)."""
+
+
+def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how: str = "steps"
+            ) -> tuple[list[Placement], dict[str, Any]]:
+    """`aggregate` (how="steps") or `aggregate_votes` (how="votes"); the diagnostics name the aggregation."""
+    if how not in AGGREGATIONS:
+        raise DegustaError(f"aggregation: expected one of {list(AGGREGATIONS)}, got {how!r}")
+    placements, diag = (aggregate if how == "steps" else aggregate_votes)(responses, kind, grid)
+    return placements, {"aggregation": how, **diag}
+
+
+def placed(oid: int, members: list[AnswerItem], kind: str, grid) -> Placement:
+    """Object `oid` at the mean of the places `members` (answer items) give it: the mean of their cell centroids
+    (grid; each item weighs the same) or of their positions, and the circular mean of their rotations."""
+    from degusta_learn.render.grid import circular_mean, direction_to_rotation
+
+    if kind == "grid":
+        x, y = grid.decode_weighted([it.cells for it in members])
+        rot = circular_mean([direction_to_rotation(it.direction) for it in members])
+    else:
+        xy = np.array([it.position for it in members], dtype=float)  # (M, 2)
+        x, y = xy.mean(axis=0)
+        rot = circular_mean([it.rotation for it in members])
+    return Placement(object=int(oid), x=float(x), y=float(y), rotation=float(rot) % 360.0)
+
+
+def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=None
+                    ) -> tuple[list[Placement], dict[str, Any]]:
+    """Object votes (module docstring): the median length's most-named objects, in their mean order.
+
+    Returns (placements in plan order, diagnostics with n_responses, n_parsed, failed, length, length_agreement and
+    per chosen object its votes and mean step, `objects`).
+    """
+    from degusta_learn.render.grid import Grid
+
+    if kind not in KINDS:
+        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
+    grid = grid or Grid()
+    parsed = [r for r in responses if r is not None]
+    diag: dict[str, Any] = {"n_responses": len(responses), "n_parsed": len(parsed), "failed": not parsed}
+    if not parsed:
+        return [], diag
+    lengths = [len(r) for r in parsed]
+    length = int(round(float(np.median(lengths))))
+    diag["length"] = length
+    diag["length_agreement"] = round(lengths.count(length) / len(parsed), 4)
+    named, mean_step, ranked = object_votes(parsed)
+    chosen = sorted(ranked[:length], key=lambda oid: mean_step[oid])
+    diag["objects"] = [{"id": oid, "votes": len(named[oid]), "mean_step": round(mean_step[oid], 4)} for oid in chosen]
+    return [placed(oid, named[oid], kind, grid) for oid in chosen], diag
+
+
+def object_votes(parsed: list[list[AnswerItem]]) -> tuple[dict[int, list[AnswerItem]], dict[int, float], list[int]]:
+    """The votes of parsed answers: id -> the items naming it, id -> its mean step, and the ids by decreasing
+    votes (ties: the lower mean step, then the one seen first)."""
+    named: dict[int, list[AnswerItem]] = {}
+    steps: dict[int, list[int]] = {}
+    for items in parsed:
+        for step, it in enumerate(items):
+            named.setdefault(it.id, []).append(it)
+            steps.setdefault(it.id, []).append(step)
+    mean_step = {oid: float(np.mean(v)) for oid, v in steps.items()}
+    ranked = sorted(named, key=lambda oid: (-len(named[oid]), mean_step[oid]))  # stable: first seen breaks ties
+    return named, mean_step, ranked
+
+
 def aggregate(responses: list[list[AnswerItem] | None], kind: str, grid=None) -> tuple[list[Placement], dict[str, Any]]:
     """Aggregate parsed responses (None = unparseable) into placements and per-step diagnostics.
 
@@ -48,7 +129,7 @@ def aggregate(responses: list[list[AnswerItem] | None], kind: str, grid=None) ->
         (placements in plan order, diagnostics with n_responses, n_parsed, failed, length,
         length_agreement and per-step type/id agreement).
     """
-    from degusta_learn.render.grid import Grid, circular_mean, direction_to_rotation
+    from degusta_learn.render.grid import Grid
 
     if kind not in KINDS:
         raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
@@ -81,14 +162,7 @@ def aggregate(responses: list[list[AnswerItem] | None], kind: str, grid=None) ->
         used.add(oid)
         step["id"] = oid
         step["id_agreement"] = round(sum(it.id == oid for it in members) / len(members), 4)
-        if kind == "grid":
-            x, y = grid.decode_weighted([it.cells for it in members])
-            rot = circular_mean([direction_to_rotation(it.direction) for it in members])
-        else:
-            xy = np.array([it.position for it in members], dtype=float)  # (M, 2)
-            x, y = xy.mean(axis=0)
-            rot = circular_mean([it.rotation for it in members])
-        placements.append(Placement(object=int(oid), x=float(x), y=float(y), rotation=float(rot) % 360.0))
+        placements.append(placed(oid, members, kind, grid))
         steps.append(step)
     diag["steps"] = steps
     if dropped:
