@@ -127,6 +127,7 @@ def test_predict_aggregates_by_votes_from_the_same_answers(tmp_path):
         out = run_predict(None, base + [f"aggregation={how}", f"out={tmp_path / how / 'predictions.jsonl'}"])
         got[how] = read_predictions(out, ds.catalog)
         assert all(p.diagnostics["aggregation"] == how for p in got[how])
+        assert json.loads((tmp_path / how / "ledger.json").read_text())["aggregation"] == how
     assert [p.object for p in got["steps"][0].placements] == [plate, fork]  # step 1's tie: the plate again
     assert [p.object for p in got["votes"][0].placements] == [plate, cup, fork]  # mean steps 0.33, 1, 1.67
     with pytest.raises(DegustaError, match="aggregation"):

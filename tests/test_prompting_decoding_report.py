@@ -45,9 +45,9 @@ def test_decoding_diagnostics_count_closes_and_free_parses():
     assert decoding_diagnostics([Completion(GOOD), None], "grid", cat, GRID) == {}  # remote / cached: nothing claimed
 
 
-def _prediction(ep, decoding: dict | None, n=4, parsed=4) -> Prediction:
+def _prediction(ep, decoding: dict | None, n=4, parsed=4, **diagnostics) -> Prediction:
     gt = dataset().arrangement(ep.participant, ep.target)
-    diag = {"n_responses": n, "n_parsed": parsed, **({"decoding": decoding} if decoding else {})}
+    diag = {"n_responses": n, "n_parsed": parsed, **({"decoding": decoding} if decoding else {}), **diagnostics}
     return Prediction(ep.id, ep.participant, ep.target, "mogma", list(gt.placements), False, diag)
 
 
@@ -76,6 +76,11 @@ def test_summary_line_labels_and_answer_table():
     rows += [r.__class__(**{**r.to_row(), "method": "free"}) for r in score_predictions(dataset(), free)]
     rows += [r.__class__(**{**r.to_row(), "method": "api"})
              for r in score_predictions(dataset(), [_prediction(ep, None, parsed=2) for ep in eps])]
+    # how the answers were combined, from the diagnostics: a known name, else not recorded (untrusted input)
+    for name, how in (("voted", "votes"), ("hostile", "<script>"), ("greedy", "steps")):
+        rows += [r.__class__(**{**r.to_row(), "method": name}) for r in score_predictions(
+            dataset(), [_prediction(ep, None, n=1 if name == "greedy" else 5, parsed=1, aggregation=how)
+                        for ep in eps])]
     summary = summarize(rows, n_bootstrap=50)
     s = summary["mogma"]
     assert s["constrained"] and s["parse_rate"] == 1.0 and s["parse_rate_free"] == 0.25 and s["forced_close_rate"] == 0.25
@@ -83,9 +88,12 @@ def test_summary_line_labels_and_answer_table():
     assert summary["free"]["constrained"] is False and "parse_rate_free" not in summary["free"]
     assert "constrained" not in summary["api"] and summary["api"]["parse_rate"] == 0.5
     table = "\n".join(answer_table(summary))
-    assert "| mogma + grammar | answer grammar | 1.000 | 0.250 | 0.250 |" in table
-    assert "| free | free | 0.750 | 0.750 | 0.500 |" in table
-    assert "| api | not recorded | 0.500 | - | - |" in table
+    assert "| mogma + grammar | answer grammar | 4 | 1.000 | 0.250 | 0.250 |" in table  # older predictions: no name
+    assert "| free | free | 4 | 0.750 | 0.750 | 0.500 |" in table
+    assert "| api | not recorded | 4 | 0.500 | - | - |" in table
+    assert "| voted | not recorded | 5, votes | 0.200 | - | - |" in table
+    assert "| hostile | not recorded | 5 | 0.200 |" in table and "script" not in table.split("|---|")[-1]
+    assert "| greedy | not recorded | 1 | 1.000 |" in table  # one answer: nothing combined
 
 
 def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thread):
@@ -114,4 +122,4 @@ def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thr
     report = evaluate_files(data, [out], tmp_path / "eval", n_bootstrap=50)
     text = (Path(report) / "report.md").read_text()
     # (random weights write one object again and again: on_repeat skip keeps it once, degenerate, to the budget)
-    assert "mogma + grammar" in text and " | answer grammar | 1.000 | 0.000 | 1.000 |" in text
+    assert "mogma + grammar" in text and " | answer grammar | 1 | 1.000 | 0.000 | 1.000 |" in text

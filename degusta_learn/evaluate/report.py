@@ -69,15 +69,19 @@ def answer_table(summary: dict[str, dict]) -> list[str]:
     def rate(v) -> str:
         return "-" if v is None else f"{v:.3f}"
 
-    lines = ["| method | decoding | answers parsed | parsed without the grammar | closed early by the token budget |",
-             "|---|---|---:|---:|---:|"]
+    lines = ["| method | decoding | answers per episode, combined by | answers parsed | parsed without the grammar | "
+             "closed early by the token budget |", "|---|---|---|---:|---:|---:|"]
     for method, s in rows:
         constrained = s.get("constrained")
         decoding = {True: "answer grammar", False: "free"}.get(constrained, "not recorded")  # e.g. a remote API
         free = {True: s.get("parse_rate_free"), False: s["parse_rate"]}.get(constrained)
-        lines.append(f"| {label(method, s)} | {decoding} | {rate(s['parse_rate'])} | {rate(free)} | "
+        per = s.get("samples_per_episode")
+        combined = "-" if per is None else f"{per:g}" + (f", {s['aggregation']}" if per > 1 and s.get("aggregation")
+                                                         else "")
+        lines.append(f"| {label(method, s)} | {decoding} | {combined} | {rate(s['parse_rate'])} | {rate(free)} | "
                      f"{rate(s.get('forced_close_rate'))} |")
-    return ["Answers: the fraction that parsed; for a model decoded inside the answer grammar (every answer parses) "
+    return ["Answers: how many per episode and, for more than one, how they were combined (steps: the paper's "
+            "per-step modes; votes: the most named objects, docs/prompting.md); the fraction that parsed; for a model decoded inside the answer grammar (every answer parses) "
             "the fraction its free decoding writes parseably (same model, same seeds: the grammar's free answers "
             "are generated wherever it changed one), comparable with free-text parse rates; and the fraction of "
             "answers the token budget closed early (grammar) or cut off (free).", "", *lines]

@@ -15,6 +15,7 @@ from pathlib import Path
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import read_jsonl
 from degusta_learn.metrics import score_many
+from degusta_learn.prompting.aggregate import AGGREGATIONS
 from degusta_learn.scene import Dataset, Episode, Prediction
 
 _CONTEXT_IN_ID = re.compile(r"/k(\d+)$")
@@ -26,8 +27,8 @@ compare's `<out>/predictions/` and rows of the reports, so a predictions file's 
 
 CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", "failed", "n_gt", "n_pred",
                "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd", "tokens",
-               "cost_usd", "n_samples", "n_parsed", "constrained", "n_decoded", "forced_closes", "n_free_known",
-               "n_free_parsed")
+               "cost_usd", "n_samples", "n_parsed", "aggregation", "constrained", "n_decoded", "forced_closes",
+               "n_free_known", "n_free_parsed")
 
 
 @dataclass
@@ -54,6 +55,7 @@ class EpisodeRow:
     # Answers of methods that parse model text (zero-shot, fine-tuned VLMs), from the prediction's diagnostics:
     n_samples: int | None = None  # answers sampled
     n_parsed: int | None = None  # of which parsed
+    aggregation: str | None = None  # how they were combined (prompting.aggregate.AGGREGATIONS; None: not recorded)
     constrained: bool | None = None  # decoded inside the answer grammar (a local model; None: not reported)
     n_decoded: int | None = None  # answers whose decoding is known (a local model's, not read back from a cache)
     forced_closes: int | None = None  # answers the token budget closed early (grammar) or cut off (free)
@@ -87,7 +89,9 @@ def answer_counts(diagnostics) -> dict:
     """The answer fields of an EpisodeRow from a prediction's diagnostics (`prompting.aggregate`)."""
     decoding = diagnostics.get("decoding") if isinstance(diagnostics, dict) else None
     constrained = decoding.get("constrained") if isinstance(decoding, dict) else None
+    aggregation = diagnostics.get("aggregation") if isinstance(diagnostics, dict) else None
     return {"n_samples": _count(diagnostics, "n_responses"), "n_parsed": _count(diagnostics, "n_parsed"),
+            "aggregation": aggregation if aggregation in AGGREGATIONS else None,  # untrusted: a known name or None
             "constrained": constrained if isinstance(constrained, bool) else None,
             "n_decoded": _count(decoding, "known"), "forced_closes": _count(decoding, "forced_closes"),
             "n_free_known": _count(decoding, "free_known"), "n_free_parsed": _count(decoding, "free_parsed")}

@@ -431,7 +431,7 @@ class ZeroShotRun:
             "kind": LEDGER_MARK, "method": c.method, "backend": c.backend.name, "model": c.backend.model,
             "base_url": getattr(c.backend, "base_url", None),  # null: a backend that calls no server (hf, replay)
             "structured_output": c.backend.structured_output,
-            "n": c.n, "episodes": len(episodes), "episodes_done": len(results),
+            "n": c.n, "aggregation": c.aggregation, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),
             "episodes_unanswered": len(unanswered), "stopped": stopped,
             "items_read": sum(d.get("n_items", 0) for d in diags),
