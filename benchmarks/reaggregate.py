@@ -49,7 +49,8 @@ def parsed_answers(prediction, catalog, grid) -> list[list]:
 
 
 def median_length(answers: list[list]) -> int:
-    """The median of the answers' lengths, rounded (the samples' count; at least 1: fixed_length.py's grammar length)."""
+    """The median of the answers' lengths, rounded (the samples' count; at least 1: fixed_length.py's grammar
+    length)."""
     return max(1, int(round(np.median([len(a) for a in answers]))))
 
 

@@ -99,7 +99,8 @@ def test_votes_take_the_most_named_objects_in_their_mean_order():
         [Gi("cup", 1, ["A1"], "N"), Gi("plate", 2, ["B2"], "N"), Gi("fork", 3, ["C3"], "E")],
         [Gi("plate", 2, ["B3"], "N"), Gi("cup", 1, ["A1"], "S"), Gi("fork", 3, ["C3"], "E")],
         None,  # unparseable: no vote, no length
-        [Gi("plate", 2, ["B2"], "N"), Gi("fork", 3, ["C4"], "E"), Gi("cup", 1, ["A2"], "N"), Gi("knife", 4, ["D1"], "W")],
+        [Gi("plate", 2, ["B2"], "N"), Gi("fork", 3, ["C4"], "E"), Gi("cup", 1, ["A2"], "N"),
+         Gi("knife", 4, ["D1"], "W")],
     ]
     placements, diag = combine(responses, "grid", G, how="votes")
     assert diag["aggregation"] == "votes" and diag["n_parsed"] == 3 and diag["length"] == 3  # median of 3, 3, 4

@@ -144,8 +144,8 @@ class FinetuneModule(L.LightningModule):
     def score_answers(self, ex, texts: list[str]) -> dict:
         """Score the answers `texts` to `ex`: parsed, aggregated (`prompting.aggregate.combine`, predict's own
         function, by `eval.aggregation`) and the aggregate scored against the ground truth. `parsed` is the share
-        of answers that parse. The per-field counts compare the answer's items (n = 1) or, for n > 1, the aggregated plan
-        written as an answer (`answer_items`: the cells its placements cover)."""
+        of answers that parse. The per-field counts compare the answer's items (n = 1) or, for n > 1, the aggregated
+        plan written as an answer (`answer_items`: the cells its placements cover)."""
         from degusta_learn.finetune.field_scores import field_counts
         from degusta_learn.metrics import score_prediction
         from degusta_learn.prompting import AnswerParseError, parse_answer
