@@ -201,6 +201,9 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     assert {"train/retrieval", "train/dense", "train/pull"} <= set(logged)  # every auxiliary loss ran
     card = (out / "README.md").read_text()
     assert "never shown anyone's table setting" in card and "AutoModelForImageTextToText" in card
+    # the card's command rebuilds THIS model: the shipped recipe plus this run's overrides, not the plain command
+    assert "--set data.teacher_weight=1" in meta["training"]["command"] in card
+    assert f"--set export={out}" in meta["training"]["command"] and "run_name" not in meta["training"]["command"]
     # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head
     model = AutoModelForImageTextToText.from_pretrained(out)
     assert type(model).__name__ == "FastVlmForConditionalGeneration"
@@ -217,6 +220,25 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     assert training["run_steps"] == 6 and training["steps"] == best  # the exported weights are the best's
     # the resumed run drew exactly the examples an uninterrupted one would: steps 2-5, none skipped or repeated
     assert seen == list(range(6 * 2)), seen
+
+
+def test_the_recipe_command_rebuilds_the_config_it_describes():
+    """`recipe_command`: the shipped config gives the plain command; overrides come back as --set values that load
+    to the same config (lists and values with spaces quoted), the run's logistics (where it logs) left out."""
+    import shlex
+
+    from degusta_learn.config import to_dict
+    from degusta_learn.finetune.pretrain.export import COMMAND, recipe_command
+
+    assert recipe_command(load_config(PretrainConfig, CONFIG)) == COMMAND
+    overrides = ["data.mix.transcribe=0.25", "model.vision_channels=[16,32,64,128]", "dataset=my data",
+                 "trainer.max_steps=100", "trainer.run_name=elsewhere", "export=runs/b"]
+    cfg = load_config(PretrainConfig, CONFIG, overrides)
+    words = shlex.split(recipe_command(cfg))
+    sets = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
+    assert len(sets) == 5 and not any(s.startswith("trainer.run_name") for s in sets)
+    rebuilt = to_dict(load_config(PretrainConfig, CONFIG, sets))
+    assert rebuilt == to_dict(load_config(PretrainConfig, CONFIG, [o for o in overrides if "run_name" not in o]))
 
 
 def test_mimetic_attention_and_tied_embeddings():
