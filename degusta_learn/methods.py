@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from degusta_learn.config import _show, apply_overrides, from_dict, read_yaml, seed_field
+from degusta_learn.config import _show, apply_overrides, check_choices, from_dict, read_yaml, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import check_output_file
 from degusta_learn.scene import (
@@ -54,6 +54,7 @@ class PredictConfig:
     """Seed of the split and of any sampling the method does (0 .. 2**32 - 1)."""
 
     def __post_init__(self):
+        check_choices(self, "")  # split, and a subclass's choices (e.g. aggregation): a config built in Python too
         if self.context is None and not self.episodes:
             raise DegustaError("context: null is only allowed with an episodes file; expected one of "
                                f"{list(CONTEXT_LENGTHS)}")

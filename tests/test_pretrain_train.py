@@ -223,8 +223,9 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
 
 
 def test_the_recipe_command_rebuilds_the_config_it_describes():
-    """`recipe_command`: the shipped config gives the plain command; overrides come back as --set values that load
-    to the same config (lists and values with spaces quoted), the run's logistics (where it logs) left out."""
+    """`recipe_command`: the shipped config gives the plain command; overrides come back as --set values that the
+    shell hands the loader intact and that load to the same config (lists, spaces, quotes, brackets, a YAML word
+    such as 'on' that must stay a string), the run's logistics (where it logs) left out."""
     import shlex
 
     from degusta_learn.config import to_dict
@@ -232,13 +233,16 @@ def test_the_recipe_command_rebuilds_the_config_it_describes():
 
     assert recipe_command(load_config(PretrainConfig, CONFIG)) == COMMAND
     overrides = ["data.mix.transcribe=0.25", "model.vision_channels=[16,32,64,128]", "dataset=my data",
-                 "trainer.max_steps=100", "trainer.run_name=elsewhere", "export=runs/b"]
-    cfg = load_config(PretrainConfig, CONFIG, overrides)
-    words = shlex.split(recipe_command(cfg))
-    sets = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
-    assert len(sets) == 5 and not any(s.startswith("trainer.run_name") for s in sets)
-    rebuilt = to_dict(load_config(PretrainConfig, CONFIG, sets))
-    assert rebuilt == to_dict(load_config(PretrainConfig, CONFIG, [o for o in overrides if "run_name" not in o]))
+                 "trainer.max_steps=100", "trainer.run_name=elsewhere", "export=runs/it's (v2) & $HOME"]
+    for last in ([], ["export='on'"]):
+        cfg = load_config(PretrainConfig, CONFIG, overrides + last)
+        words = shlex.split(recipe_command(cfg))
+        sets = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
+        assert len(sets) == 5 and not any(s.startswith("trainer.run_name") for s in sets)
+        rebuilt = to_dict(load_config(PretrainConfig, CONFIG, sets))
+        assert rebuilt == to_dict(cfg) | {"trainer": to_dict(load_config(PretrainConfig, CONFIG, sets))["trainer"]}
+        assert rebuilt["export"] == cfg.export and rebuilt["trainer"]["run_name"] != "elsewhere"
+        assert rebuilt["trainer"]["max_steps"] == 100
 
 
 def test_mimetic_attention_and_tied_embeddings():

@@ -144,6 +144,14 @@ def test_one_answer_is_its_own_vote():
     assert [(p.object, p.x, p.y) for p in placements] == [(it.id, *it.position) for it in answer]
 
 
-def test_unknown_aggregation_is_refused():
+def test_unknown_aggregation_is_refused_in_python_configs_too():
+    """The loader checks YAML and --set; a config built in Python is checked when made, not after the answers."""
+    from degusta_learn.finetune.config import EvalConfig
+    from degusta_learn.prompting.runner import ZeroShotConfig
+
     with pytest.raises(DegustaError, match="aggregation: expected one of"):
         combine([], "grid", G, how="vote")
+    with pytest.raises(DegustaError, match="aggregation: expected one of"):
+        ZeroShotConfig(method="mogma", dataset="d", out="o", aggregation="vote")
+    with pytest.raises(DegustaError, match="eval.aggregation: expected one of"):
+        EvalConfig(aggregation="vote")

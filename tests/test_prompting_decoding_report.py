@@ -81,6 +81,9 @@ def test_summary_line_labels_and_answer_table():
         rows += [r.__class__(**{**r.to_row(), "method": name}) for r in score_predictions(
             dataset(), [_prediction(ep, None, n=1 if name == "greedy" else 5, parsed=1, aggregation=how)
                         for ep in eps])]
+    rows += [r.__class__(**{**r.to_row(), "method": "mixed"}) for r in score_predictions(  # files put together
+        dataset(), [_prediction(ep, None, n=n, parsed=1, aggregation=how)
+                    for ep, n, how in zip(eps, (1, 5, 5), ("steps", "votes", "steps"))])]
     summary = summarize(rows, n_bootstrap=50)
     s = summary["mogma"]
     assert s["constrained"] and s["parse_rate"] == 1.0 and s["parse_rate_free"] == 0.25 and s["forced_close_rate"] == 0.25
@@ -88,12 +91,14 @@ def test_summary_line_labels_and_answer_table():
     assert summary["free"]["constrained"] is False and "parse_rate_free" not in summary["free"]
     assert "constrained" not in summary["api"] and summary["api"]["parse_rate"] == 0.5
     table = "\n".join(answer_table(summary))
-    assert "| mogma + grammar | answer grammar | 4 | 1.000 | 0.250 | 0.250 |" in table  # older predictions: no name
-    assert "| free | free | 4 | 0.750 | 0.750 | 0.500 |" in table
-    assert "| api | not recorded | 4 | 0.500 | - | - |" in table
+    assert "| mogma + grammar | answer grammar | 4, not recorded | 1.000 | 0.250 | 0.250 |" in table
+    assert "| free | free | 4, not recorded | 0.750 | 0.750 | 0.500 |" in table
+    assert "| api | not recorded | 4, not recorded | 0.500 | - | - |" in table
     assert "| voted | not recorded | 5, votes | 0.200 | - | - |" in table
-    assert "| hostile | not recorded | 5 | 0.200 |" in table and "script" not in table.split("|---|")[-1]
+    assert "| hostile | not recorded | 5, not recorded | 0.200 |" in table and "script" not in table.split("|---|")[-1]
     assert "| greedy | not recorded | 1 | 1.000 |" in table  # one answer: nothing combined
+    assert "| mixed | not recorded | 1-5, steps + votes |" in table
+
 
 
 def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thread):

@@ -75,9 +75,9 @@ def answer_table(summary: dict[str, dict]) -> list[str]:
         constrained = s.get("constrained")
         decoding = {True: "answer grammar", False: "free"}.get(constrained, "not recorded")  # e.g. a remote API
         free = {True: s.get("parse_rate_free"), False: s["parse_rate"]}.get(constrained)
-        per = s.get("samples_per_episode")
-        combined = "-" if per is None else f"{per:g}" + (f", {s['aggregation']}" if per > 1 and s.get("aggregation")
-                                                         else "")
+        lo, hi = s.get("samples_per_episode") or (None, None)
+        combined = "-" if hi is None else (f"{lo}" if lo == hi else f"{lo}-{hi}") + (
+            f", {s['aggregation']}" if s.get("aggregation") else "")
         lines.append(f"| {label(method, s)} | {decoding} | {combined} | {rate(s['parse_rate'])} | {rate(free)} | "
                      f"{rate(s.get('forced_close_rate'))} |")
     return ["Answers: how many per episode and, for more than one, how they were combined (steps: the paper's "

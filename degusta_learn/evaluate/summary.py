@@ -86,10 +86,10 @@ def _answer_rates(rows: list[EpisodeRow]) -> dict:
     sampled = [r for r in rows if r.n_samples is not None and r.n_parsed is not None]
     if sampled:
         out["parse_rate"] = ratio([r.n_parsed for r in sampled], [r.n_samples for r in sampled])
-        out["samples_per_episode"] = round(sum(r.n_samples for r in sampled) / len(sampled), 3)
-    aggregations = sorted({r.aggregation for r in rows if r.aggregation is not None})
-    if aggregations:  # a run's one choice; more than one: predictions files put together
-        out["aggregation"] = " + ".join(aggregations)
+        out["samples_per_episode"] = [min(r.n_samples for r in sampled), max(r.n_samples for r in sampled)]
+    combined = {r.aggregation or "not recorded" for r in sampled if r.n_samples > 1}  # one answer: nothing combined
+    if combined:  # a run's one choice; more than one: predictions files put together
+        out["aggregation"] = " + ".join(sorted(combined))
     decoded = [r for r in rows if r.constrained is not None and r.n_decoded]
     if decoded:
         out["constrained"] = any(r.constrained for r in decoded)

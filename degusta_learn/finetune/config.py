@@ -161,6 +161,9 @@ class EvalConfig:
             return float(self.temperature)
         return 1.0 if self.n > 1 else 0.0
 
+    def __post_init__(self):
+        check_choices(self, "eval")  # on_repeat, aggregation: built in Python too (the loader checks YAML)
+
 
 @dataclass
 class FinetuneTrainerConfig(TrainerConfig):

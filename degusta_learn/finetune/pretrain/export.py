@@ -24,6 +24,7 @@ from degusta_learn.fileio import atomic_write_text, read_json
 from degusta_learn.trainer import validation_curve
 from degusta_learn.vlm.record import BASE_FILE as BASE_META  # the record's file name, defined once
 PERCEPTION = "perception.json"
+PRETRAIN_CONFIG = "pretrain_config.yaml"  # the run's resolved config, in the folder
 COMMAND = "degusta train --config configs/pretrain_tiny_vlm_cpu.yaml"
 _LOGISTICS = {"trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.progress_bar", "trainer.loggers",
               "trainer.log_every_n_steps", "trainer.tracking_offline"}
@@ -33,7 +34,11 @@ _LOGISTICS = {"trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.
 def recipe_command(cfg) -> str:
     """The command that rebuilds the base `cfg` describes: COMMAND plus a `--set` for every key whose value differs
     from the shipped config's (a base built with overrides must not claim the plain command, which builds another
-    model); COMMAND alone when the shipped config cannot be read (e.g. a wheel without it)."""
+    model). Each `--set` is shell-quoted as a whole and its value written as YAML, so the shell hands the loader
+    the value's YAML (a string such as 'on' stays a string). Where the shipped config cannot be read, the command
+    runs the folder's own resolved config (`pretrain_config.yaml`), which rebuilds it too."""
+    import shlex
+
     import yaml
 
     from degusta_learn.config import load_config, to_dict
@@ -45,11 +50,11 @@ def recipe_command(cfg) -> str:
 
     try:
         shipped = dict(flat(to_dict(load_config(type(cfg), SHIPPED_DIR / Path(COMMAND.split()[-1]).name))))
-    except Exception:  # noqa: BLE001 - the card still names the recipe's file; its resolved config is in the folder
-        return COMMAND
+    except Exception:  # noqa: BLE001 - the folder's resolved config is the recipe then
+        return f"degusta train --config {PRETRAIN_CONFIG} (the resolved config in this folder)"
     sets = [f"{k}={yaml.safe_dump(v, default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}"
             for k, v in flat(to_dict(cfg)) if k not in _LOGISTICS and shipped.get(k, object()) != v]
-    return " ".join([COMMAND, *(f"--set {s}" if " " not in s else f"--set '{s}'" for s in sets)])
+    return " ".join([COMMAND, *(f"--set {shlex.quote(s)}" for s in sets)])
 
 
 def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None,
@@ -90,11 +95,11 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
                       "curriculum_mix": dataclasses.asdict(cfg.data.curriculum_mix)},
             validation_curve=curve))
         if (run_dir / "config.yaml").is_file():
-            shutil.copyfile(run_dir / "config.yaml", tmp / "pretrain_config.yaml")
+            shutil.copyfile(run_dir / "config.yaml", tmp / PRETRAIN_CONFIG)
         else:
             import yaml
 
-            atomic_write_text(tmp / "pretrain_config.yaml", yaml.safe_dump(to_dict(cfg), sort_keys=False))
+            atomic_write_text(tmp / PRETRAIN_CONFIG, yaml.safe_dump(to_dict(cfg), sort_keys=False))
         write_card(tmp, name=out.name, path=out)
     return out
 
@@ -185,7 +190,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         "template (`<|im_start|>user ... <|im_end|>`)",
         "- render images at the model's image size (no resizing, no crop); loading needs `timm`", "",
         "## How it was trained", "",
-        f"`{t['command']}` (the resolved config is `pretrain_config.yaml` in this folder): {t['steps']} steps "
+        f"`{t['command']}` (the resolved config is `{PRETRAIN_CONFIG}` in this folder): {t['steps']} steps "
         + (f"(the best validation of a {t['run_steps']}-step run) " if t.get("run_steps", t["steps"]) != t["steps"]
            else "") +
         f"of {t['batch_size']} examples ({t['examples']} examples, every one a freshly rendered random scene), "
