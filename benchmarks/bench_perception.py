@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -64,6 +65,17 @@ def curve_path(model: str, out: str) -> str:
     if Path(model).resolve() == BASE_DIR:
         return SHIPPED_CURVE
     return str(Path(out) / "perception_curve.png")
+
+
+def finite_or_null(value):
+    """`value` with every NaN or infinite float (a score of a task no question asked) as None: JSON null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [finite_or_null(v) for v in value]
+    return value
 
 
 def main() -> None:
@@ -136,6 +148,7 @@ def main() -> None:
         result["transcribe"] = {"n": len(copied), "object_f1": summarize(copied)["transcribe_f1"],
                                 "length_exact": sum(r["tp"] + r["fp"] == r["n_truth"] for r in copied) / len(copied)}
     out = Path(args.out)
+    result = finite_or_null(result)  # a task with no questions scores NaN, which strict JSON readers refuse
     atomic_write_json(out / "perception.json", result)
     print(f"\n{len(rows)} questions about {n_images} held-out images ({result['seconds']:.0f} s):\n")
     print("| object-set F1 | exact cell set | direction (no plates) | GoMO mark id | cell IoU | parse rate |")
@@ -143,7 +156,7 @@ def main() -> None:
     print("| " + " | ".join(f"{scores[k]:.3f}" for k in ("object_f1", "cells_exact", "direction", "mark_id",
                                                           "cell_iou", "parse_rate")) + " |")
     print("\nobject-set F1 by scenes in the prompt:", json.dumps(
-        {k: round(v, 3) for k, v in result["object_f1_by_scenes"].items()}))
+        {k: None if v is None else round(v, 3) for k, v in result["object_f1_by_scenes"].items()}))
     if copied:
         print(f"transcribe ({len(copied)} lists written in the prompt, copied): object F1 "
               f"{result['transcribe']['object_f1']:.3f}, written length {result['transcribe']['length_exact']:.3f}")
