@@ -62,6 +62,16 @@ def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how:
     return placements, {"aggregation": how, **diag}
 
 
+def _start(responses: list, kind: str, grid) -> tuple:
+    """(grid or the 8 x 8 default, the parsed responses, the diagnostics every aggregation starts with)."""
+    from degusta_learn.render.grid import Grid
+
+    if kind not in KINDS:
+        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
+    parsed = [r for r in responses if r is not None]
+    return grid or Grid(), parsed, {"n_responses": len(responses), "n_parsed": len(parsed), "failed": not parsed}
+
+
 def placed(oid: int, members: list[AnswerItem], kind: str, grid) -> Placement:
     """Object `oid` at the mean of the places `members` (answer items) give it: the mean of their cell centroids
     (grid; each item weighs the same) or of their positions, and the circular mean of their rotations."""
@@ -84,13 +94,7 @@ def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=No
     Returns (placements in plan order, diagnostics with n_responses, n_parsed, failed, length, length_agreement and
     per chosen object its votes and mean step, `objects`).
     """
-    from degusta_learn.render.grid import Grid
-
-    if kind not in KINDS:
-        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
-    grid = grid or Grid()
-    parsed = [r for r in responses if r is not None]
-    diag: dict[str, Any] = {"n_responses": len(responses), "n_parsed": len(parsed), "failed": not parsed}
+    grid, parsed, diag = _start(responses, kind, grid)
     if not parsed:
         return [], diag
     lengths = [len(r) for r in parsed]
@@ -129,13 +133,7 @@ def aggregate(responses: list[list[AnswerItem] | None], kind: str, grid=None) ->
         (placements in plan order, diagnostics with n_responses, n_parsed, failed, length,
         length_agreement and per-step type/id agreement).
     """
-    from degusta_learn.render.grid import Grid
-
-    if kind not in KINDS:
-        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
-    grid = grid or Grid()
-    parsed = [r for r in responses if r is not None]
-    diag: dict[str, Any] = {"n_responses": len(responses), "n_parsed": len(parsed), "failed": not parsed}
+    grid, parsed, diag = _start(responses, kind, grid)
     if not parsed:
         return [], diag
     lengths = [len(r) for r in parsed]
