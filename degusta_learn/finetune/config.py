@@ -9,6 +9,7 @@ from degusta_learn.config import bounded, check_choices, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.lora import LoraConfig
 from degusta_learn.optim import OptimConfig
+from degusta_learn.prompting.aggregate import Aggregation
 from degusta_learn.render.grid import Grid
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.trainer import TrainerConfig
@@ -144,7 +145,7 @@ class EvalConfig:
     n: int = bounded(1, 1, 64)
     """Answers per validation episode: 1 = one answer, as before; > 1 = n sampled answers aggregated exactly as
     `degusta predict` aggregates them (prompting/aggregate.py), the aggregate then scored (n x the generation)."""
-    aggregation: Literal["steps", "votes"] = "steps"
+    aggregation: Aggregation = "steps"
     """n > 1: how the answers become one plan, as predict's `aggregation` (steps: the paper's; votes: the objects
     most answers name, as many as the median answer's length)."""
     temperature: float | None = bounded(None, 0.0, 10.0)

@@ -33,7 +33,7 @@ Example:
 from __future__ import annotations
 
 from collections import Counter
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -49,8 +49,10 @@ def _ranked(values: list) -> list:
     return sorted(counts, key=lambda v: (-counts[v], first[v]))
 
 
-AGGREGATIONS = ("steps", "votes")
-"""How n answers become one plan: the paper's per-step modes, or object votes (module docstring)."""
+Aggregation = Literal["steps", "votes"]
+"""How n answers become one plan: the paper's per-step modes, or object votes (module docstring); the configs'
+`aggregation` / `eval.aggregation` type."""
+AGGREGATIONS = get_args(Aggregation)
 
 
 def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how: str = "steps"

@@ -33,7 +33,6 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 from tqdm import tqdm
 
@@ -41,7 +40,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json, read_json, refuse_overwriting_inputs
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.render.grid import Grid
-from degusta_learn.prompting.aggregate import combine, decoding_diagnostics
+from degusta_learn.prompting.aggregate import Aggregation, combine, decoding_diagnostics
 from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, is_repeat, read_answer
 from degusta_learn.prompting.backends.base import (
     BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact, redact_json,
@@ -77,7 +76,7 @@ class ZeroShotConfig(PredictConfig):
     """Which VLM answers: `name` picks the backend, whose own keys the section then takes (docs/prompting.md)."""
     n: int = 5
     """Sampled answers per episode, aggregated (the paper: 5)."""
-    aggregation: Literal["steps", "votes"] = "steps"
+    aggregation: Aggregation = "steps"
     """How the n answers become one plan (prompting/aggregate.py): steps, the paper's (per step the mode type and
     id, the mode length); votes, the objects most answers name, as many as the median answer's length. Applied
     to the stored answers, so changing it re-uses the response cache (no new requests)."""

@@ -25,7 +25,8 @@ from degusta_learn.trainer import validation_curve
 from degusta_learn.vlm.record import BASE_FILE as BASE_META  # the record's file name, defined once
 PERCEPTION = "perception.json"
 PRETRAIN_CONFIG = "pretrain_config.yaml"  # the run's resolved config, in the folder
-COMMAND = "degusta train --config configs/pretrain_tiny_vlm_cpu.yaml"
+RECIPE = "pretrain_tiny_vlm_cpu.yaml"  # the shipped pretraining config
+COMMAND = f"degusta train --config configs/{RECIPE}"
 _LOGISTICS = {"trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.progress_bar", "trainer.loggers",
               "trainer.log_every_n_steps", "trainer.tracking_offline"}
 """Keys that say where a run logs and how it shows progress, not what it builds: left out of the recipe command."""
@@ -42,6 +43,7 @@ def recipe_command(cfg) -> str:
     import yaml
 
     from degusta_learn.config import load_config, to_dict
+    from degusta_learn.errors import DegustaError
     from degusta_learn.shipped import SHIPPED_DIR
 
     def flat(d: dict, prefix: str = ""):
@@ -49,8 +51,8 @@ def recipe_command(cfg) -> str:
             yield from flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [(f"{prefix}{k}", v)]
 
     try:
-        shipped = dict(flat(to_dict(load_config(type(cfg), SHIPPED_DIR / Path(COMMAND.split()[-1]).name))))
-    except Exception:  # noqa: BLE001 - the folder's resolved config is the recipe then
+        shipped = dict(flat(to_dict(load_config(type(cfg), SHIPPED_DIR / RECIPE))))
+    except (DegustaError, OSError):  # the folder's resolved config is the recipe then
         return f"degusta train --config {PRETRAIN_CONFIG} (the resolved config in this folder)"
     sets = [f"{k}={yaml.safe_dump(v, default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}"
             for k, v in flat(to_dict(cfg)) if k not in _LOGISTICS and shipped.get(k, object()) != v]
@@ -84,7 +86,8 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
             # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
             prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
             catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
-            training={"command": recipe_command(cfg), "steps": steps, "run_steps": run_steps if run_steps is not None else steps,
+            training={"command": recipe_command(cfg), "steps": steps,
+                      "run_steps": run_steps if run_steps is not None else steps,
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
                       "tower_steps": cfg.data.tower_steps, "freeze_tower": cfg.data.freeze_tower,
