@@ -15,7 +15,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from degusta_learn.errors import DegustaError
+from degusta_learn.errors import MachineMismatch
 from degusta_learn.trainer import TrainerConfig, check_trainer, effective_precision, world_size
 
 GiB = 1024**3
@@ -128,7 +128,8 @@ def steps_per_epoch(n_examples: int, batch_size: int, cfg: TrainerConfig) -> tup
 
 def dry_run_trainer_lines(cfg: TrainerConfig, monitors: Iterable[str] | None, n_examples: int,
                           batch_size: int) -> list[tuple[str, str]]:
-    """The report lines every kind shares: steps per epoch, the run's length, the trainer check on this machine."""
+    """The report lines every kind shares: steps per epoch, the run's length, the trainer check on this machine
+    (what this machine lacks is reported as FAILS; a config mistake, such as an unknown monitor, raises)."""
     batches, steps = steps_per_epoch(n_examples, batch_size, cfg)
     world = world_size(cfg)
     per = f"{n_examples} examples / ({batch_size} per batch x {world} process{'es' if world > 1 else ''})"
@@ -143,7 +144,7 @@ def dry_run_trainer_lines(cfg: TrainerConfig, monitors: Iterable[str] | None, n_
             precision = f"{cfg.precision}, run as {precision} here: this CPU has no native bfloat16"
         lines.append(("trainer check", f"ok on this machine ({cfg.accelerator}, devices {cfg.devices}, "
                                        f"num_nodes {cfg.num_nodes}, strategy {cfg.strategy}, {precision})"))
-    except DegustaError as e:  # a GPU config checked on a login node: say so, the rest of the report still holds
+    except MachineMismatch as e:  # a GPU config checked on a login node: say so, the rest of the report holds
         lines.append(("trainer check", f"FAILS on this machine: {e}"))
     return lines
 

@@ -8,3 +8,9 @@ one line and exits non-zero; every other exception is a bug and keeps its traceb
 
 class DegustaError(Exception):
     """A user-facing error: the message alone must say what is wrong and where."""
+
+
+class MachineMismatch(DegustaError):
+    """A valid config that this machine cannot run: no GPU for a GPU config, too few devices, a logger package
+    not installed, a multi-node run not started by a launcher. `train --dry-run` reports it and exits 0 (a GPU
+    config checked on a login node); a config mistake (`DegustaError`) fails the dry run like the real one."""

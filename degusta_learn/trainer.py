@@ -59,7 +59,7 @@ from typing import Any, Literal
 import yaml
 
 from degusta_learn.config import bounded, check_choices, read_yaml, seed_field, to_dict
-from degusta_learn.errors import DegustaError
+from degusta_learn.errors import DegustaError, MachineMismatch
 from degusta_learn.fileio import atomic_write_text
 
 LAST = "last.ckpt"
@@ -204,37 +204,39 @@ def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> 
     """Check what only this machine and the module can tell: the accelerator is present, enough devices,
     a known strategy, a precision this accelerator runs, and (given the keys the module logs) the monitor.
 
-    Raises DegustaError naming the `trainer.` key; writes nothing.
+    Raises `MachineMismatch` (a `DegustaError`) for what this machine lacks (a GPU, cores, a logger package, a
+    launcher) and `DegustaError` for a config mistake (an unknown strategy or monitor), each naming the
+    `trainer.` key; writes nothing.
     """
     import torch
 
     acc = cfg.accelerator
     gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
     if acc in ("gpu", "cuda") and gpus == 0:
-        raise DegustaError(f"trainer.accelerator: {acc!r} but no CUDA GPU is available on this machine; "
+        raise MachineMismatch(f"trainer.accelerator: {acc!r} but no CUDA GPU is available on this machine; "
                            f"use trainer.accelerator=cpu (or auto)")
     if acc == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
-        raise DegustaError("trainer.accelerator: 'mps' but Apple MPS is not available here; use cpu (or auto)")
+        raise MachineMismatch("trainer.accelerator: 'mps' but Apple MPS is not available here; use cpu (or auto)")
     if acc == "tpu":
         try:
             import torch_xla  # noqa: F401
         except ImportError:
-            raise DegustaError("trainer.accelerator: 'tpu' but no TPU runtime (torch_xla) is installed; "
+            raise MachineMismatch("trainer.accelerator: 'tpu' but no TPU runtime (torch_xla) is installed; "
                                "use cpu (or auto)") from None
     on_gpu = acc in ("gpu", "cuda") or (acc == "auto" and gpus > 0)
     if on_gpu:
         wanted = cfg.devices if isinstance(cfg.devices, int) else len(cfg.devices) if isinstance(cfg.devices, list) else 0
         top = max(cfg.devices) + 1 if isinstance(cfg.devices, list) else wanted
         if wanted > gpus or top > gpus:
-            raise DegustaError(f"trainer.devices: {cfg.devices} asks for more GPUs than the {gpus} available here")
+            raise MachineMismatch(f"trainer.devices: {cfg.devices} asks for more GPUs than the {gpus} available here")
     else:
         _check_cpu_devices(cfg)
     if cfg.num_nodes > 1 or cfg.strategy != "auto" or world_size(cfg) > 1:
         _check_cluster(cfg)
     if cfg.precision.startswith("transformer-engine") and not on_gpu:
-        raise DegustaError(f"trainer.precision: {cfg.precision!r} needs a GPU; use 32-true or bf16-mixed on CPU")
+        raise MachineMismatch(f"trainer.precision: {cfg.precision!r} needs a GPU; use 32-true or bf16-mixed on CPU")
     if cfg.precision in ("16-true", "16") and not on_gpu:
-        raise DegustaError(f"trainer.precision: {cfg.precision!r} (float16) needs a GPU; use 32-true or bf16-mixed on CPU")
+        raise MachineMismatch(f"trainer.precision: {cfg.precision!r} (float16) needs a GPU; use 32-true or bf16-mixed on CPU")
     if cfg.strategy != "auto":
         from lightning.pytorch.strategies import StrategyRegistry
 
@@ -247,7 +249,7 @@ def check_trainer(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> 
                                f"this harness does not support; use ddp (ranks started from the command line) "
                                f"or ddp_fork")
         if (cfg.strategy.startswith("fsdp") or cfg.strategy.startswith("deepspeed")) and not on_gpu:
-            raise DegustaError(f"trainer.strategy: {cfg.strategy!r} needs a GPU accelerator; use auto or ddp on CPU")
+            raise MachineMismatch(f"trainer.strategy: {cfg.strategy!r} needs a GPU accelerator; use auto or ddp on CPU")
     _check_logger_packages(cfg)
     if monitors is not None and cfg.monitor is not None:
         known = sorted(set(monitors))
@@ -282,10 +284,10 @@ def _check_logger_packages(cfg: TrainerConfig) -> None:
         try:
             importlib.import_module(module)
         except ImportError:
-            raise DegustaError(f"trainer.loggers: {name!r} needs the {module} package, not installed here: "
+            raise MachineMismatch(f"trainer.loggers: {name!r} needs the {module} package, not installed here: "
                                f"pip install 'degusta_learn[{name}]' (or remove {name!r} from trainer.loggers)") from None
     if "mlflow" in cfg.loggers and not cfg.tracking_offline and not os.environ.get("MLFLOW_TRACKING_URI"):
-        raise DegustaError("trainer.tracking_offline: false sends MLflow runs to MLFLOW_TRACKING_URI, which is not "
+        raise MachineMismatch("trainer.tracking_offline: false sends MLflow runs to MLFLOW_TRACKING_URI, which is not "
                            "set; set it (e.g. http://host:5000) or keep tracking_offline true (<run>/mlruns)")
 
 
@@ -350,10 +352,10 @@ def _check_cpu_devices(cfg: TrainerConfig) -> None:
     if d == "auto":
         return
     if isinstance(d, list) or d == -1:
-        raise DegustaError(f"trainer.devices: {d} selects GPUs, but this run is on the CPU; give a number of "
+        raise MachineMismatch(f"trainer.devices: {d} selects GPUs, but this run is on the CPU; give a number of "
                            f"CPU processes (1..{cores}) or use trainer.accelerator=gpu on a GPU machine")
     if d > cores:
-        raise DegustaError(f"trainer.devices: {d} CPU processes asked for, but this machine has {cores} cores "
+        raise MachineMismatch(f"trainer.devices: {d} CPU processes asked for, but this machine has {cores} cores "
                            f"(each process holds a whole model and needs a core); use at most {cores}")
 
 
@@ -378,13 +380,13 @@ def _check_cluster(cfg: TrainerConfig) -> None:
     env = os.environ
     launched = env.get("WORLD_SIZE", "")
     if cfg.num_nodes > 1 and not launched.isdigit() and not env.get("SLURM_NTASKS") and not env.get("MASTER_ADDR"):
-        raise DegustaError(f"trainer.num_nodes: {cfg.num_nodes} machines, but this process was not started by a "
+        raise MachineMismatch(f"trainer.num_nodes: {cfg.num_nodes} machines, but this process was not started by a "
                            "multi-node launcher (torchrun --nnodes / SLURM srun: no WORLD_SIZE, SLURM_NTASKS or "
                            "MASTER_ADDR); it would wait for the other machines forever. See docs/finetune.md, "
                            "'Multi-GPU and multi-node'")
     want = world_size(cfg)
     if launched.isdigit() and int(launched) > 1 and int(launched) != want:  # torchrun (SLURM: Lightning checks)
-        raise DegustaError(f"trainer.devices / trainer.num_nodes: the launcher started {launched} processes "
+        raise MachineMismatch(f"trainer.devices / trainer.num_nodes: the launcher started {launched} processes "
                            f"(WORLD_SIZE) but devices x num_nodes = {want}; make them agree (devices = processes "
                            "per node, num_nodes = machines)")
 

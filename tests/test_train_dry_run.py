@@ -159,3 +159,33 @@ def test_impossible_device_counts_name_the_key(tmp_path, data):
     assert not (tmp_path / "runs").exists()
     report = _lines(CONFIGS / "learned_cpu.yaml", base)
     assert "FAILS on this machine: trainer.devices" in report and "predicted memory" in report
+
+
+def test_dry_run_fails_on_a_config_mistake_and_reports_a_missing_machine(tmp_path, data):
+    """What the machine lacks is reported and the dry run goes on (exit 0); a config mistake fails it with the
+    real run's error (exit 2), so a dry-run is a check of the config."""
+    import subprocess
+    import sys
+
+    base = [f"dataset={data}", f"trainer.run_dir={tmp_path / 'runs'}", "model.d_model=16", "model.n_layers=1",
+            "model.n_heads=2", "model.d_ff=32"]
+
+    def dry(*extra):
+        cmd = [sys.executable, "-m", "degusta_learn.cli", "train", "--config", str(CONFIGS / "learned_cpu.yaml"),
+               "--dry-run"]
+        for o in base + list(extra):
+            cmd += ["--set", o]
+        return subprocess.run(cmd, capture_output=True, text=True)
+
+    import torch
+
+    gpu = dry("trainer.accelerator=gpu")
+    assert gpu.returncode == 0, gpu.stdout + gpu.stderr
+    if not torch.cuda.is_available():  # reported, and the rest of the report is printed
+        assert "FAILS on this machine: trainer.accelerator" in gpu.stdout and "predicted memory" in gpu.stdout
+    for key, value in [("trainer.monitor", "val/no_such_key"), ("trainer.strategy", "no_such_strategy")]:
+        bad = dry(f"{key}={value}")
+        assert bad.returncode == 2, bad.stdout + bad.stderr
+        assert f"{key}: " in bad.stderr and "Traceback" not in bad.stderr
+        assert "FAILS on this machine" not in bad.stdout
+    assert not (tmp_path / "runs").exists()
