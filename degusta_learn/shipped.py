@@ -118,6 +118,9 @@ def copy_config(name: str, dest: str | Path = ".") -> Path:
     """Write the shipped config `name` into folder `dest` (or to `dest` itself if it ends in .yaml); never overwrites."""
     src = shipped_config(name)
     dest = Path(dest)
+    if dest.suffix and dest.suffix not in (".yaml", ".yml") and not dest.is_dir():  # `copy NAME notes.txt`
+        raise DegustaError(f"{dest}: a config is written into a folder or to a .yaml file; {dest.name!r} is neither "
+                           f"an existing folder nor a .yaml name (give {dest.with_suffix('.yaml')} or a folder)")
     target = dest if dest.suffix in (".yaml", ".yml") else dest / src.name
     if target.exists() or target.is_symlink():
         raise DegustaError(f"{target}: already exists; not overwritten (remove it, or copy into another folder)")

@@ -105,6 +105,13 @@ def test_configs_copy_writes_the_file_and_never_overwrites(tmp_path, capsys):
     assert target.read_text() == "edited: true\n"
     assert copy_config("oracle.yaml", tmp_path / "o.yaml") == tmp_path / "o.yaml"  # a .yaml DEST is the file
     assert (tmp_path / "o.yaml").read_bytes() == (SHIPPED_DIR / "oracle.yaml").read_bytes()
+    # a DEST that is neither a folder nor a .yaml name was made a folder called notes.txt
+    assert main(["configs", "copy", "oracle", str(tmp_path / "notes.txt")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "notes.txt" in err and "notes.yaml" in err
+    assert not (tmp_path / "notes.txt").exists()
+    (tmp_path / "runs.v2").mkdir()  # an existing folder with a dot in its name is a folder
+    assert copy_config("oracle", tmp_path / "runs.v2") == tmp_path / "runs.v2" / "oracle.yaml"
 
 
 def test_configs_copy_of_an_unknown_name_lists_close_matches(tmp_path, capsys):
