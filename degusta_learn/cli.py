@@ -42,15 +42,25 @@ def cmd_data_export_sft(args) -> str:
 
 def cmd_data_validate(args) -> str:
     from degusta_learn.scene import load_dataset
-
+    from degusta_learn.scene.dataset import off_surface
     from degusta_learn.synth.oracle import dataset_styles
 
     ds = load_dataset(args.dir)
     ratings = f", {len(ds.ratings)} ratings" if ds.ratings is not None else ""
     styles = dataset_styles(ds)
     styles = f", {len(styles)} latent styles" if styles is not None else ""
-    return (f"{args.dir}: valid — {len(ds.catalog)} objects, {len(ds.tables)} tables, "
-            f"{len(ds.participants)} participants, {len(ds.arrangements)} arrangements{ratings}{styles}")
+    report = (f"{args.dir}: valid — {len(ds.catalog)} objects, {len(ds.tables)} tables, "
+              f"{len(ds.participants)} participants, {len(ds.arrangements)} arrangements{ratings}{styles}")
+    off = off_surface(ds)
+    if off:
+        shown = "; ".join(f"participant {a.participant} trial {a.trial} object {p.object} at ({p.x:.3f}, {p.y:.3f}) "
+                          f"on table {a.table}" for a, p in off[:3])
+        total = sum(len(a.placements) for a in ds.arrangements)
+        report += (f"\nnote: {len(off)} of {total} placements have their centre off the table's surface polygon "
+                   f"(tables.json 'surface'), e.g. {shown}{'; ...' if len(off) > 3 else ''}. A plate may hang "
+                   f"over an edge; many such placements usually mean x, y are not fractions of the table's "
+                   f"width and height")
+    return report
 
 
 def cmd_data_episodes(args) -> str:

@@ -20,6 +20,27 @@ def test_validate_ok_and_bad(small_dataset_dir, capsys):
     assert "arrangements.jsonl:2: field 'placements[0].x'" in err
 
 
+def test_validate_notes_placements_off_the_table_surface(small_dataset_dir, capsys):
+    """A centre inside [0, 1] but off the table's surface polygon loads (an edge may be overhung) and is named."""
+    from degusta_learn.scene import load_dataset
+
+    ds = load_dataset(small_dataset_dir)
+    assert main(["data", "validate", str(small_dataset_dir)]) == 0
+    assert "note:" not in capsys.readouterr().out  # the generator sets every object on the table
+    path = small_dataset_dir / "arrangements.jsonl"
+    lines = path.read_text().splitlines()
+    row = json.loads(lines[2])
+    assert not ds.tables[row["table"]].contains(0.001, 0.999)  # a corner outside every shipped table's surface
+    row["placements"][1].update(x=0.001, y=0.999)
+    lines[2] = json.dumps(row)
+    path.write_text("\n".join(lines) + "\n")
+    assert main(["data", "validate", str(small_dataset_dir)]) == 0
+    out = capsys.readouterr().out
+    obj = row["placements"][1]["object"]
+    assert "valid" in out and "note: 1 of " in out
+    assert f"participant {row['participant']} trial {row['trial']} object {obj} at (0.001, 0.999)" in out
+
+
 def test_episodes_verb_writes_file(small_dataset_dir, tmp_path, capsys):
     out = tmp_path / "eps.jsonl"
     assert main(["data", "episodes", str(small_dataset_dir), "--context", "2", "--split", "test", "--out", str(out)]) == 0

@@ -149,6 +149,20 @@ def validate_dataset(ds: Dataset) -> Dataset:
     return ds
 
 
+def off_surface(ds: Dataset) -> list[tuple[Arrangement, Placement]]:
+    """Placements whose centre lies outside their table's surface polygon (inside [0, 1], so they load).
+
+    Not an error (a real plate may hang over a round table's edge), but many of them usually mean coordinates
+    given in another frame than the table's (`degusta data validate` reports them)."""
+    out = []
+    for arr in ds.arrangements:
+        if not arr.placements:
+            continue
+        on = ds.tables[arr.table].contains([p.x for p in arr.placements], [p.y for p in arr.placements])
+        out += [(arr, p) for p, ok in zip(arr.placements, on) if not ok]
+    return out
+
+
 def save_dataset(ds: Dataset, root: str | Path) -> Path:
     """Write `ds` as a dataset folder (atomically, file by file); returns the folder."""
     root = Path(root)
