@@ -143,6 +143,15 @@ def test_adapter_save_load_gives_identical_logits(tmp_path):
         assert torch.allclose(merged(**inputs).logits, expected, atol=1e-4)
     assert not any("lora" in n for n, _ in merged.named_parameters())
     assert tiny_dir("idefics3").exists()
+    # Folded in at load (what the hf backend predicts with): a plain model, the same logits.
+    folded, _ = load_vlm(str(tiny_dir("idefics3")), adapter=str(out), device="cpu", dtype="float32",
+                         merge_adapter=True)
+    assert not isinstance(folded, PeftModel) and not any("lora" in n for n, _ in folded.named_parameters())
+    with torch.no_grad():
+        assert torch.allclose(folded(**inputs).logits, expected, atol=1e-4)
+    kept, _ = load_vlm(str(tiny_dir("idefics3")), adapter=str(out), device="cpu", dtype="float32",
+                       trainable_adapter=True, merge_adapter=True)  # resuming training: never folded
+    assert isinstance(kept, PeftModel)
 
 
 def test_lightning_checkpoint_holds_only_trainable_tensors():

@@ -1,7 +1,7 @@
 """The `hf` backend: a local Hugging Face VLM (zero-shot base model, or base + fine-tuned adapter).
 
 Loads the model offline (`vlm.load.load_vlm`: hub id from the local cache or a folder, never a
-download), optionally with a peft adapter (`backend.adapter`), and answers with
+download), optionally with a peft adapter (`backend.adapter`, folded into the weights for speed), and answers with
 `vlm.generate.generate_answers`, optionally constrained to the answer grammar
 (`backend.constrained: true`: every answer parses). A fine-tuned adapter or model folder carries
 `degusta_finetune.json` (a `FinetuneRecord`, vlm/record.py, written by `degusta train`): the backend
@@ -117,7 +117,8 @@ class HFBackend(Backend):
             if (grid.rows, grid.cols) != (rows, cols):
                 raise DegustaError(f"grid: this model was trained on a {rows}x{cols} grid, the predict config "
                                    f"asks for {grid.rows}x{grid.cols}; set grid.rows={rows} grid.cols={cols}")
-        self.vlm, self.processor = load_vlm(model, adapter=adapter, device=device, dtype=dtype, key="backend.model")
+        self.vlm, self.processor = load_vlm(model, adapter=adapter, device=device, dtype=dtype, key="backend.model",
+                                            merge_adapter=True)
         budget = image_size if image_size is not None else (self.record.image_size if self.record else None)
         set_image_budget(self.processor, self.vlm.config, budget, key="backend.image_size")
         if grid is not None:
