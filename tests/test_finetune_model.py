@@ -149,3 +149,20 @@ def test_a_corrupt_json_file_of_a_model_folder_is_named(tmp_path, name, content,
     (tmp_path / name).write_bytes(content)
     with pytest.raises(DegustaError, match=re.escape(f"backend.model: {tmp_path / name}: {message.split(': ', 1)[1]}")):
         check_model_source(str(tmp_path), "backend.model")
+
+
+@pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
+def test_a_config_whose_image_token_is_not_the_processors_is_refused_at_load(tmp_path, kind):
+    """An edited or foreign config.json used to fail at the first answer ("Image features and image tokens do
+    not match, tokens: 0"), after a predict run had set up its cache and ledger."""
+    import json
+    import shutil
+
+    folder = shutil.copytree(tiny_dir(kind), tmp_path / kind)
+    load_vlm(str(folder), device="cpu")  # as built: the ids agree
+    config = json.loads((folder / "config.json").read_text())
+    config["image_token_id"] += 1
+    (folder / "config.json").write_text(json.dumps(config))
+    with pytest.raises(DegustaError, match=r"^backend.model: .*config.json's image_token_id is \d+, but the "
+                                           r"processor writes its image placeholder .* as token \d+"):
+        load_vlm(str(folder), device="cpu", key="backend.model")

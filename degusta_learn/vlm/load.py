@@ -159,6 +159,7 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     if emb is not None and emb.num_embeddings < n_vocab:  # a processor from another model: ids would overflow
         raise DegustaError(f"{key}: {model_id_or_path!r}: its tokenizer has {n_vocab} tokens but the model embeds "
                            f"only {emb.num_embeddings}; the processor files belong to another model")
+    _check_image_token(model.config, processor, model_id_or_path, key)
     if adapter:
         adapter_key = f"{key.rsplit('.', 1)[0]}.adapter" if "." in key else "adapter"  # backend.model -> backend.adapter
         model = load_adapter(model, adapter, trainable=trainable_adapter, key=adapter_key)
@@ -168,6 +169,23 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     if quantization_config is None:
         model = model.to(device)
     return model.eval(), processor
+
+
+def _check_image_token(config, processor, name: str, key: str) -> None:
+    """The processor writes its image placeholder as the token id the model replaces with image features; a
+    config.json from another model (or an edited id) failed only at the first answer, with transformers' "Image
+    features and image tokens do not match, tokens: 0"."""
+    token = getattr(processor, "image_token", None)
+    wanted = getattr(config, "image_token_id", None)
+    if wanted is None:
+        wanted = getattr(config, "image_token_index", None)
+    if not token or not isinstance(wanted, int):
+        return
+    written = processor.tokenizer.convert_tokens_to_ids(str(token))
+    if written != wanted:
+        raise DegustaError(f"{key}: {name!r}: config.json's image_token_id is {wanted}, but the processor writes its "
+                           f"image placeholder {str(token)!r} as token {written}; the config and the processor files "
+                           f"belong to different models")
 
 
 def _first_line(e: Exception) -> str:
