@@ -166,3 +166,19 @@ def test_a_config_whose_image_token_is_not_the_processors_is_refused_at_load(tmp
     with pytest.raises(DegustaError, match=r"^backend.model: .*config.json's image_token_id is \d+, but the "
                                            r"processor writes its image placeholder .* as token \d+"):
         load_vlm(str(folder), device="cpu", key="backend.model")
+
+
+@pytest.mark.parametrize("template, error", [("{% for m in messages %}{{ m.content }{% endfor %}", "TemplateSyntaxError"),
+                                             ('{{ raise_exception("no chat here") }}', "TemplateError: no chat here")])
+def test_a_chat_template_that_cannot_render_is_refused_when_the_backend_loads(tmp_path, template, error):
+    """It failed at the first answer ("hf: TemplateSyntaxError: unexpected '}'"), naming no folder, after a
+    predict run had set up its cache and ledger."""
+    import shutil
+
+    from degusta_learn.prompting.backends.hf import HFBackend
+
+    folder = shutil.copytree(tiny_dir("idefics3"), tmp_path / "model")
+    (folder / "chat_template.jinja").write_text(template)
+    with pytest.raises(DegustaError, match=rf"^backend.model: '{re.escape(str(folder))}': its chat template cannot "
+                                           rf"render a message \({error}"):
+        HFBackend(str(folder), device="cpu")

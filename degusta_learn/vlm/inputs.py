@@ -54,8 +54,13 @@ class ChatFormat:
         if not getattr(processor, "chat_template", None):
             raise DegustaError("model: the processor has no chat template (an instruct/chat VLM is needed)")
         user = [_user_message("x")]
-        prompt = processor.apply_chat_template(user, add_generation_prompt=True, tokenize=False)
-        full = processor.apply_chat_template(user + [assistant_message(_PROBE)], tokenize=False)
+        try:  # a template that does not parse or raises: the library's error would surface at the first answer
+            prompt = processor.apply_chat_template(user, add_generation_prompt=True, tokenize=False)
+            full = processor.apply_chat_template(user + [assistant_message(_PROBE)], tokenize=False)
+        except Exception as e:
+            text = str(e).strip().splitlines()
+            raise DegustaError(f"model: its chat template cannot render a message ({type(e).__name__}: "
+                               f"{text[0][:200] if text else ''})") from None
         if not full.startswith(prompt) or _PROBE not in full[len(prompt):]:
             raise DegustaError("model: its chat template does not render the answer right after the "
                                "generation prompt; fine-tuning this template is not supported")

@@ -105,6 +105,7 @@ class HFBackend(Backend):
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None,
                  on_repeat: str = "skip", context_answers: bool | None = None):
+        from degusta_learn.vlm.generate import chat_format
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
         from degusta_learn.vlm.load import load_vlm
         from degusta_learn.vlm.record import FinetuneRecord, locate_record, read_record
@@ -119,6 +120,10 @@ class HFBackend(Backend):
                                    f"asks for {grid.rows}x{grid.cols}; set grid.rows={rows} grid.cols={cols}")
         self.vlm, self.processor = load_vlm(model, adapter=adapter, device=device, dtype=dtype, key="backend.model",
                                             merge_adapter=True)
+        try:  # the chat template probed now, before a run sets up its cache (vlm.generate caches the result)
+            chat_format(self.vlm, self.processor)
+        except DegustaError as e:
+            raise DegustaError(f"backend.model: {model!r}: {str(e).removeprefix('model: ')}") from None
         budget = image_size if image_size is not None else (self.record.image_size if self.record else None)
         set_image_budget(self.processor, self.vlm.config, budget, key="backend.image_size")
         if grid is not None:
