@@ -12,11 +12,11 @@ same episodes and against `population_mean`:
   with this script's own copy, which took at least one object where most answers were empty; predict's gives none
   then, as the paper's aggregation does);
 - **greedy + votes**: the greedy answer's objects and places, lengthened to the sampled answers' median length by
-  the best-voted objects it lacks (never shortened): the greedy answer's places, the samples' count.
+  the best-voted objects it lacks (never shortened): the greedy answer's places, the samples' count
+  (`prompting.aggregate.anchored_votes`, predict's `aggregation: greedy_votes`, here from two runs' files).
 
 A research script for one question (can a decoding-side length fix the count error without losing Kabsch RMSD?);
-of its three ways, `votes` became a predict option (points 35 and 37 record why), greedy + votes needs a second,
-greedy run and stays here.
+two of its three ways became predict options (`votes`, `greedy_votes`; points 35, 37 and 39 record why).
 
 Usage:
     degusta predict --config configs/predict_hf_base_finetuned.yaml --set backend.adapter=RUN/adapter \\
@@ -56,20 +56,6 @@ def median_length(answers: list[list]) -> int:
     return max(1, int(round(np.median([len(a) for a in answers]))))
 
 
-def greedy_plus_votes(greedy: list, answers: list[list], grid) -> list:
-    """The greedy answer, lengthened (never shortened) to the answers' median length by the best-voted objects
-    it lacks, each where the answers naming it put it."""
-    from degusta_learn.prompting.aggregate import object_votes, placed
-
-    if not answers:
-        return list(greedy)
-    length = median_length(answers)
-    named, _, ranked = object_votes(answers)
-    have = {p.object for p in greedy}
-    extra = [i for i in ranked if i not in have][: max(0, length - len(greedy))]
-    return list(greedy) + [placed(i, named[i], "grid", grid) for i in extra]
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dataset", required=True)
@@ -84,7 +70,7 @@ def main() -> None:
 
     from degusta_learn.methods import get_method
     from degusta_learn.metrics import paired_bootstrap, score_many
-    from degusta_learn.prompting.aggregate import aggregate_votes
+    from degusta_learn.prompting.aggregate import aggregate_votes, anchored_votes
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset, read_episodes, read_predictions
 
@@ -105,8 +91,9 @@ def main() -> None:
         "steps (the paper's, as predicted)": [sampled[i] for i in order],
         "votes": [dataclasses.replace(sampled[i], placements=aggregate_votes(answers[i], "grid", grid)[0])
                   for i in order],
-        "greedy + votes": [dataclasses.replace(greedy[i], placements=greedy_plus_votes(
-            greedy[i].placements, answers[i], grid)) for i in order],
+        "greedy + votes": [dataclasses.replace(greedy[i], placements=anchored_votes(
+            (parsed_answers(greedy[i], ds.catalog, grid) or [None])[0], answers[i], "grid", grid)[0])
+            for i in order],
     }
     for extra in args.extra:
         name, _, path = extra.partition("=")

@@ -82,10 +82,10 @@ def test_validation_batches_by_eval_batch_size(tiny, monkeypatch):
     assert _module(tiny).cfg.eval.batch_size is None  # data.batch_size then
 
 
-@pytest.mark.parametrize("aggregation", ["steps", "votes"])
+@pytest.mark.parametrize("aggregation", ["steps", "votes", "greedy_votes"])
 def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_path, aggregation):
     """eval.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers
-    (`eval.aggregation` as predict's `aggregation`)."""
+    (`eval.aggregation` as predict's `aggregation`; greedy_votes: one more, greedy generate call)."""
     from degusta_learn.prompting.runner import ZeroShotConfig, ZeroShotRun
     from degusta_learn.scene import save_dataset
 
@@ -97,21 +97,24 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
     truth = answer_items(list(gt.placements), ds.catalog, "grid", GRID)
     texts = [format_answer(truth, "grid"), format_answer(truth[:-1], "grid"), "not an answer",
              format_answer(truth[1:], "grid")]
-    seen = {}
+    greedy = format_answer(truth[:1], "grid")
+    calls = []
 
     def scripted(model, processor, prompts, n, temperature, max_new_tokens, constrained, grammar, seeds, on_repeat):
-        seen.update(n=n, temperature=temperature, seeds=seeds, on_repeat=on_repeat)
-        return [[Completion(t, 10, 10, {}) for t in texts] for _ in prompts]
+        calls.append(dict(n=n, temperature=temperature, seeds=seeds, on_repeat=on_repeat))
+        return [[Completion(t, 10, 10, {}) for t in (texts if temperature > 0 else [greedy])] for _ in prompts]
 
     monkeypatch.setattr("degusta_learn.vlm.generate.generate_batch", scripted)
     module = _module(tiny, n=4, aggregation=aggregation)
     row = module.score_batch([ex], True, [7])[0]
-    assert seen == {"n": 4, "temperature": 1.0, "seeds": [module.cfg.seed + 7], "on_repeat": "skip"}
+    sampled = {"n": 4, "temperature": 1.0, "seeds": [module.cfg.seed + 7], "on_repeat": "skip"}
+    assert calls == [sampled] + ([{**sampled, "n": 1, "temperature": 0.0}] if aggregation == "greedy_votes" else [])
 
     cfg = ZeroShotConfig(dataset=str(save_dataset(ds, tmp_path / "data")), out=str(tmp_path / "p.jsonl"),
                          method="mogma", n=4, cache="off", aggregation=aggregation)
     ep = next(e for e in examples(context=2, split="val").episodes if e.id == ex.episode)
-    pred = ZeroShotRun(cfg, ds).predict(ep, [Completion(t, 10, 10, {}) for t in texts], {}, cached=0)
+    answers = texts + ([greedy] if aggregation == "greedy_votes" else [])
+    pred = ZeroShotRun(cfg, ds).predict(ep, [Completion(t, 10, 10, {}) for t in answers], {}, cached=0)
     expected = score_prediction(ds.catalog, gt, pred.placements, pred.failed)
     assert row["placements"] == pred.placements and row["parsed"] == 0.75
     assert (row["set_rmsd"], row["acc"], row["n_matched"]) == (expected.set_rmsd, expected.object_accuracy,
@@ -127,6 +130,15 @@ def test_eval_temperature_defaults():
     assert cfg.eval.sampling_temperature == 1.0
     cfg.eval.temperature = 0.7
     assert cfg.eval.sampling_temperature == 0.7
+
+
+def test_greedy_votes_validation_needs_samples():
+    from degusta_learn.errors import DegustaError
+    from degusta_learn.finetune.config import EvalConfig
+
+    with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes lengthens a greedy answer"):
+        EvalConfig(aggregation="greedy_votes")  # n 1: greedy, nothing to vote
+    assert EvalConfig(aggregation="greedy_votes", n=5).sampling_temperature == 1.0
 
 
 def test_validation_images_png_and_tensorboard(tmp_path):

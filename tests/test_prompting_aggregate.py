@@ -155,3 +155,28 @@ def test_unknown_aggregation_is_refused_in_python_configs_too():
         ZeroShotConfig(method="mogma", dataset="d", out="o", aggregation="vote")
     with pytest.raises(DegustaError, match="eval.aggregation: expected one of"):
         EvalConfig(aggregation="vote")
+
+
+def test_greedy_votes_keep_the_greedy_answer_and_add_the_most_voted_objects_it_lacks():
+    """`greedy_votes` by hand: the greedy answer's 2 objects keep its own places; the samples' median length is 4,
+    so the 2 best-voted objects it lacks are added (votes 3 and 2, ties to the lower mean step), each at the mean
+    of the samples naming it; never shortened; an unparseable greedy answer falls back to votes."""
+    greedy = [U("plate", 80, 0.5, 0.5, 0), U("fork", 30, 0.3, 0.5, 0)]
+    samples = [
+        [U("plate", 81, 0.4, 0.4, 0), U("cup", 1, 0.8, 0.3, 0), U("knife", 60, 0.7, 0.5, 0), U("fork", 30, 0.2, 0.5, 0)],
+        [U("cup", 1, 0.6, 0.3, 0), U("knife", 60, 0.9, 0.5, 0), U("spoon", 50, 0.1, 0.1, 0), U("plate", 80, 0.5, 0.6, 0)],
+        [U("cup", 1, 0.7, 0.3, 0), U("spoon", 50, 0.3, 0.1, 0), U("fork", 31, 0.1, 0.1, 0), U("knife", 61, 0.1, 0.9, 0)],
+        None,
+    ]
+    placements, diag = combine(samples, "unmarked", how="greedy_votes", anchor=greedy)
+    # votes: cup 3 (mean step 1/3), knife 60 2 (1.5), spoon 50 2 (1.5; knife 60 first seen), plate 80 (held), ...
+    assert [p.object for p in placements] == [80, 30, 1, 60]
+    assert (placements[0].x, placements[0].y) == (0.5, 0.5)  # the greedy answer's own place, not the samples'
+    assert placements[2].x == pytest.approx(0.7) and placements[3].x == pytest.approx(0.8)  # the voters' means
+    assert diag["aggregation"] == "greedy_votes" and diag["anchor"] == 2 and diag["length"] == 4
+    assert [a["id"] for a in diag["added"]] == [1, 60] and diag["added"][0]["votes"] == 3 and not diag["failed"]
+    longer = greedy + [U("cup", 2, 0.1, 0.2, 0), U("cup", 3, 0.2, 0.2, 0), U("cup", 4, 0.3, 0.2, 0)]
+    assert [p.object for p in combine(samples, "unmarked", how="greedy_votes", anchor=longer)[0]] == [80, 30, 2, 3, 4]
+    assert combine([None, None], "unmarked", how="greedy_votes", anchor=greedy)[1]["failed"] is False  # no samples
+    fallback, d = combine(samples, "unmarked", how="greedy_votes", anchor=None)
+    assert d["anchor"] == "unparsed" and fallback == aggregate_votes(samples, "unmarked")[0]

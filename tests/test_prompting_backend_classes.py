@@ -247,6 +247,20 @@ def test_a_new_backend_is_one_class_and_its_registry_entry(tmp_path, data, added
     assert EchoBackend.calls == [3] * 18 and ledger(tmp_path)["samples_cached"] == 0  # `answer` joins the cache key
 
 
+def test_greedy_votes_ask_the_greedy_answer_apart_and_share_the_cache_with_plain_runs(tmp_path, data, added, capsys):
+    """`aggregation: greedy_votes`: a request for the n samples and one at temperature 0 for the greedy answer,
+    counted so by the dry run; its answers are cached under the keys a sampled run and a greedy run use, so
+    either re-run asks nothing."""
+    path = config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"}, aggregation="greedy_votes")
+    assert run_predict(path, dry_run=True) is None
+    assert "requests: 18 for 36 samples" in capsys.readouterr().out
+    run_predict(path)
+    assert EchoBackend.calls == [3, 1] * 9 and ledger(tmp_path)["requests"] == 18
+    run_predict(config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"}, aggregation="votes"))
+    run_predict(config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"}, n=1, temperature=0.0))
+    assert EchoBackend.calls == [3, 1] * 9 and ledger(tmp_path)["samples_cached"] == 9
+
+
 def test_a_paid_per_sample_backend_is_asked_one_sample_at_a_time_priced_and_redacted(
         tmp_path, data, added, monkeypatch, capsys):
     monkeypatch.setenv("METERED_API_KEY", "metered-secret-0042")

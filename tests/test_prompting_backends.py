@@ -135,6 +135,42 @@ def test_predict_aggregates_by_votes_from_the_same_answers(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_predict_lengthens_the_greedy_answer_by_votes(tmp_path):
+    """`aggregation: greedy_votes` through predict: the greedy answer (recorded as sample "greedy", asked at
+    temperature 0) keeps its one object, lengthened to the samples' median length (3) by their most named objects;
+    its text is kept in the diagnostics, so a predictions file replays the same plan; temperature 0 is refused."""
+    ds = make_small_dataset(n_participants=3, n_trials=3)
+    data = save_dataset(ds, tmp_path / "data")
+    episodes = make_episodes(ds, 2, "all")
+    cup, plate, fork = (ds.catalog.of_type(t)[0].id for t in ("cup", "plate", "fork"))
+
+    def answer(*items):
+        return "[" + ", ".join(f"{{'type': '{t}', 'id': {i}, 'position': ['{c}'], 'cardinal_direction': 'N'}}"
+                               for t, i, c in items) + "]"
+
+    samples = [answer(("cup", cup, "A1"), ("plate", plate, "B2"), ("fork", fork, "C3")),
+               answer(("plate", plate, "B3"), ("cup", cup, "A1"), ("fork", fork, "C3")),
+               answer(("plate", plate, "B2"), ("cup", cup, "A2"))]
+    rows = [{"episode": ep.id, "sample": i, "text": t} for ep in episodes for i, t in enumerate(samples)]
+    rows += [{"episode": ep.id, "sample": "greedy", "text": answer(("fork", fork, "H8"))} for ep in episodes]
+    answers = tmp_path / "answers.jsonl"
+    answers.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    base = [f"dataset={data}", "context=2", "split=all", "n=3", "image_size=64", "method=mogma", "temperature=0.5",
+            "backend.name=replay", "aggregation=greedy_votes"]
+    first = run_predict(None, base + [f"backend.path={answers}", f"out={tmp_path / 'a' / 'predictions.jsonl'}"])
+    got = read_predictions(first, ds.catalog)
+    assert [p.object for p in got[0].placements] == [fork, plate, cup]  # the greedy fork, then 3 and 3 votes
+    assert got[0].placements[0].x > 0.8  # the greedy answer's place (H8), not the samples' (C3)
+    assert got[0].diagnostics["greedy_response"].startswith("[{'type': 'fork'")
+    assert [a["id"] for a in got[0].diagnostics["added"]] == [plate, cup]
+    again = run_predict(None, base + [f"backend.path={first}", f"out={tmp_path / 'b' / 'predictions.jsonl'}"])
+    assert [p.placements for p in read_predictions(again, ds.catalog)] == [p.placements for p in got]
+    with pytest.raises(DegustaError, match="temperature: expected > 0 with aggregation greedy_votes"):
+        run_predict(None, base + ["temperature=0", f"backend.path={answers}",
+                                  f"out={tmp_path / 'c' / 'predictions.jsonl'}"])
+    assert not (tmp_path / "c").exists()
+
+
 def test_prices_and_image_tokens():
     assert price("gpt-4o") == (2.5, 10.0) and price("gpt-4o-2024-08-06") == (2.5, 10.0)
     assert price("gpt-4o-mini-2024-07-18") == (0.15, 0.6)        # longest prefix wins

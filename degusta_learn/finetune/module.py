@@ -129,19 +129,26 @@ class FinetuneModule(L.LightningModule):
         """Generate `eval.n` answers per example (one `generate` call, left-padded), aggregate each example's
         answers as predict does and score the aggregate: one VAL_COLUMNS row (+ `text`, the first answer, and
         `placements`) per example. `indices` (positions in the validation set) seed the samples."""
+        from degusta_learn.prompting.aggregate import ANCHORED
         from degusta_learn.vlm.generate import generate_batch
         from degusta_learn.vlm.grammar import AnswerGrammar
 
         e = self.cfg.eval
         indices = list(range(len(examples))) if indices is None else indices
         grammar = AnswerGrammar(self.kind, self.ds.catalog, self.grid) if constrained else None
-        answers = generate_batch(self.model, self.processor, [ex.prompt for ex in examples], n=e.n,
-                                 temperature=e.sampling_temperature, max_new_tokens=e.max_new_tokens,
-                                 constrained=constrained, grammar=grammar,
-                                 seeds=[self.cfg.seed + i for i in indices], on_repeat=e.on_repeat)
-        return [self.score_answers(ex, [c.text for c in completions]) for ex, completions in zip(examples, answers)]
+        prompts, seeds = [ex.prompt for ex in examples], [self.cfg.seed + i for i in indices]
+        answers = generate_batch(self.model, self.processor, prompts, n=e.n, temperature=e.sampling_temperature,
+                                 max_new_tokens=e.max_new_tokens, constrained=constrained, grammar=grammar,
+                                 seeds=seeds, on_repeat=e.on_repeat)
+        greedy = [None] * len(examples)
+        if e.aggregation == ANCHORED:  # + the greedy answer, as predict asks for it
+            greedy = [c[0].text for c in generate_batch(self.model, self.processor, prompts, n=1, temperature=0.0,
+                                                        max_new_tokens=e.max_new_tokens, constrained=constrained,
+                                                        grammar=grammar, seeds=seeds, on_repeat=e.on_repeat)]
+        return [self.score_answers(ex, [c.text for c in completions], anchor)
+                for ex, completions, anchor in zip(examples, answers, greedy)]
 
-    def score_answers(self, ex, texts: list[str]) -> dict:
+    def score_answers(self, ex, texts: list[str], greedy: str | None = None) -> dict:
         """Score the answers `texts` to `ex`: parsed, aggregated (`prompting.aggregate.combine`, predict's own
         function, by `eval.aggregation`) and the aggregate scored against the ground truth. `parsed` is the share
         of answers that parse. The per-field counts compare the answer's items (n = 1) or, for n > 1, the aggregated
@@ -153,12 +160,13 @@ class FinetuneModule(L.LightningModule):
         from degusta_learn.prompting.answers import answer_items
 
         parsed = []
-        for text in texts:
+        for text in texts + ([greedy] if greedy is not None else []):
             try:
                 parsed.append(parse_answer(text, self.kind, self.ds.catalog, self.grid))
             except AnswerParseError:
                 parsed.append(None)
-        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation)
+        anchor = parsed.pop() if greedy is not None else None
+        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation, anchor=anchor)
         gt = self.ds.arrangement(ex.participant, ex.target)
         s = score_prediction(self.ds.catalog, gt, placements, diag["failed"])
         items = parsed[0] if len(parsed) == 1 else (

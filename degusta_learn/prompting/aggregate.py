@@ -25,9 +25,16 @@ objects in different orders across its samples, so a step's mode mixes different
 
 An answer names an object at most once (`read_answer` drops an item naming one again), so a vote is one answer's.
 
+Greedy + votes, `anchored_votes` (`aggregation: greedy_votes`; docs/tiny_base.md points 35 and 39): the model's
+greedy answer (one more answer, at temperature 0) keeps its objects and places, and is lengthened, never shortened,
+to the n samples' median length by the best-voted objects it lacks (each placed from every sample naming it). For a
+model whose greedy lists end early but whose samples' lengths follow the person's count. An unparseable greedy
+answer falls back to votes.
+
 Example:
     placements, diag = aggregate([parse_answer(t, "grid", catalog, grid) for t in texts], "grid", grid)
     placements, diag = combine(parsed, "grid", grid, how="votes")
+    placements, diag = combine(sampled, "grid", grid, how="greedy_votes", anchor=greedy_items)
 """
 
 from __future__ import annotations
@@ -49,18 +56,24 @@ def _ranked(values: list) -> list:
     return sorted(counts, key=lambda v: (-counts[v], first[v]))
 
 
-Aggregation = Literal["steps", "votes"]
-"""How n answers become one plan: the paper's per-step modes, or object votes (module docstring); the configs'
-`aggregation` / `eval.aggregation` type."""
+Aggregation = Literal["steps", "votes", "greedy_votes"]
+"""How n answers become one plan: the paper's per-step modes, object votes, or the greedy answer lengthened by
+votes (module docstring); the configs' `aggregation` / `eval.aggregation` type."""
 AGGREGATIONS = get_args(Aggregation)
+ANCHORED = "greedy_votes"
+"""The aggregation that asks for one more answer, at temperature 0 (the anchor)."""
 
 
-def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how: str = "steps"
-            ) -> tuple[list[Placement], dict[str, Any]]:
-    """`aggregate` (how="steps") or `aggregate_votes` (how="votes"); the diagnostics name the aggregation."""
+def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how: str = "steps",
+            anchor: list[AnswerItem] | None = None) -> tuple[list[Placement], dict[str, Any]]:
+    """`aggregate` (how="steps"), `aggregate_votes` (how="votes") or `anchored_votes` (how="greedy_votes", with the
+    greedy answer's items as `anchor`, None if it did not parse); the diagnostics name the aggregation."""
     if how not in AGGREGATIONS:
         raise DegustaError(f"aggregation: expected one of {list(AGGREGATIONS)}, got {how!r}")
-    placements, diag = (aggregate if how == "steps" else aggregate_votes)(responses, kind, grid)
+    if how == ANCHORED:
+        placements, diag = anchored_votes(anchor, responses, kind, grid)
+    else:
+        placements, diag = (aggregate if how == "steps" else aggregate_votes)(responses, kind, grid)
     return placements, {"aggregation": how, **diag}
 
 
@@ -107,6 +120,31 @@ def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=No
     chosen = sorted(ranked[:length], key=lambda oid: mean_step[oid])
     diag["objects"] = [{"id": oid, "votes": len(named[oid]), "mean_step": round(mean_step[oid], 4)} for oid in chosen]
     return [placed(oid, named[oid], kind, grid) for oid in chosen], diag
+
+
+def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerItem] | None], kind: str, grid=None
+                   ) -> tuple[list[Placement], dict[str, Any]]:
+    """The greedy answer `anchor` lengthened by votes (module docstring); `aggregate_votes` when it is None.
+
+    Returns (the anchor's placements, then the added objects in order of their votes; diagnostics with n_responses,
+    n_parsed, failed, `anchor` (its length, or "unparsed"), length (the samples' median, or the anchor's without
+    samples) and per added object its votes and mean step, `added`).
+    """
+    if anchor is None:
+        placements, diag = aggregate_votes(responses, kind, grid)
+        return placements, {**diag, "anchor": "unparsed"}
+    grid, parsed, diag = _start(responses, kind, grid)
+    diag.update(failed=False, anchor=len(anchor))
+    own = [placed(it.id, [it], kind, grid) for it in anchor]
+    if not parsed:
+        return own, {**diag, "length": len(anchor), "added": []}
+    length = int(round(float(np.median([len(r) for r in parsed]))))
+    named, mean_step, ranked = object_votes(parsed)
+    have = {it.id for it in anchor}
+    extra = [oid for oid in ranked if oid not in have][:max(0, length - len(anchor))]
+    diag["length"] = length
+    diag["added"] = [{"id": oid, "votes": len(named[oid]), "mean_step": round(mean_step[oid], 4)} for oid in extra]
+    return own + [placed(oid, named[oid], kind, grid) for oid in extra], diag
 
 
 def object_votes(parsed: list[list[AnswerItem]]) -> tuple[dict[int, list[AnswerItem]], dict[int, float], list[int]]:

@@ -40,7 +40,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.fileio import atomic_write_json, read_json, refuse_overwriting_inputs
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.render.grid import Grid
-from degusta_learn.prompting.aggregate import Aggregation, combine, decoding_diagnostics
+from degusta_learn.prompting.aggregate import ANCHORED, Aggregation, combine, decoding_diagnostics
 from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, is_repeat, read_answer
 from degusta_learn.prompting.backends.base import (
     BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact, redact_json,
@@ -78,8 +78,10 @@ class ZeroShotConfig(PredictConfig):
     """Sampled answers per episode, aggregated (the paper: 5)."""
     aggregation: Aggregation = "steps"
     """How the n answers become one plan (prompting/aggregate.py): steps, the paper's (per step the mode type and
-    id, the mode length); votes, the objects most answers name, as many as the median answer's length. Applied
-    to the stored answers, so changing it re-uses the response cache (no new requests)."""
+    id, the mode length); votes, the objects most answers name, as many as the median answer's length;
+    greedy_votes, one more answer at temperature 0 (the greedy one) lengthened to the samples' median length by
+    their most named objects it lacks. Applied to the stored answers, so changing it re-uses the response cache
+    (greedy_votes asks only for the greedy answers a cache lacks)."""
     temperature: float = 1.0
     """Sampling temperature (the APIs' default 1.0; 0 makes the n samples near-identical)."""
     concurrency: int = 4
@@ -111,6 +113,8 @@ class ZeroShotConfig(PredictConfig):
         super().__post_init__()
         checks = [("n", self.n >= 1, ">= 1"), ("concurrency", self.concurrency >= 1, ">= 1"),
                   ("temperature", self.temperature >= 0, ">= 0"), ("image_size", self.image_size >= 64, ">= 64"),
+                  ("temperature", self.temperature > 0 or self.aggregation != ANCHORED,
+                   "> 0 with aggregation greedy_votes (its n answers are sampled, the greedy one is asked apart)"),
                   ("max_retries", self.max_retries >= 0, ">= 0"), ("backoff", self.backoff >= 0, ">= 0"),
                   ("backoff_max", self.backoff_max >= 0, ">= 0"),
                   ("budget_usd", self.budget_usd is None or self.budget_usd >= 0, ">= 0"),
@@ -194,8 +198,10 @@ class ZeroShotRun:
         c = self.cfg
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
                               structured=c.backend.structured_output)
-        return prompt, sample_keys(prompt, c.backend, c.temperature, c.backend.max_tokens, c.seed, c.n,
-                                   schema=self.schema)
+        keys = sample_keys(prompt, c.backend, c.temperature, c.backend.max_tokens, c.seed, c.n, schema=self.schema)
+        if c.aggregation == ANCHORED:  # + the greedy answer: the key a greedy run (n 1, temperature 0) gives it
+            keys += sample_keys(prompt, c.backend, 0.0, c.backend.max_tokens, c.seed, 1, schema=self.schema)
+        return prompt, keys
 
     # ------------------------------------------------------------------------- requests
 
@@ -204,7 +210,7 @@ class ZeroShotRun:
         self.stop.wait(seconds)
 
     def request(self, prompt: Prompt, k: int, seed: int | None, keys: list[str] | None = None,
-                episode: str | None = None) -> list[Completion]:
+                episode: str | None = None, temperature: float | None = None) -> list[Completion]:
         """Ask for k samples, retrying transient errors; raises BudgetExceeded, _Stopped or BackendError.
 
         The answers are committed to the cache under `keys` the moment they are received, before the
@@ -220,7 +226,8 @@ class ZeroShotRun:
             self.ledger.reserve(est_usd)
             try:
                 try:
-                    got = _sanitize(self.backend.complete(prompt, k, c.temperature, c.backend.max_tokens, seed))
+                    got = _sanitize(self.backend.complete(prompt, k, c.temperature if temperature is None else
+                                                          temperature, c.backend.max_tokens, seed))
                 except (BackendError, DegustaError, KeyboardInterrupt):
                     raise
                 except Exception as e:  # a client library's own exception, a local model's OOM: stop cleanly
@@ -259,12 +266,21 @@ class ZeroShotRun:
         c = self.cfg
         samples: list[Completion | None] = [hits.get(k) for k in keys]
         reasons: dict[int, str] = {}
-        missing = [i for i, s in enumerate(samples) if s is None]
+        self.fetch(ep, prompt, keys, samples, reasons, list(range(c.n)), c.temperature)
+        if len(keys) > c.n:  # greedy_votes: the greedy answer, asked apart at temperature 0
+            self.fetch(ep, prompt, keys, samples, reasons, [c.n], 0.0)
+        return self.predict(ep, samples, reasons, cached=len(hits))
+
+    def fetch(self, ep: Episode, prompt: Prompt, keys: list[str], samples: list, reasons: dict[int, str],
+              indices: list[int], temperature: float) -> None:
+        """Ask for the samples `indices` that `samples` lacks, at `temperature`, into `samples` (or `reasons`)."""
+        c = self.cfg
+        missing = [i for i in indices if samples[i] is None]
         while missing:
-            seed = None if c.seed is None else c.seed + missing[0]
+            seed = None if c.seed is None else c.seed + missing[0] - indices[0]  # the anchor: a greedy run's seed
             ask = missing[:1] if self.per_sample else missing  # per-sample APIs: each answer cached at once
             try:
-                got = self.request(prompt, len(ask), seed, [keys[i] for i in ask], ep.id)
+                got = self.request(prompt, len(ask), seed, [keys[i] for i in ask], ep.id, temperature)
             except BudgetExceeded:
                 self.stop.set()  # at once, so no other worker starts a request
                 raise
@@ -289,7 +305,6 @@ class ZeroShotRun:
                 for i in missing:
                     reasons[i] = "no recorded answer"
                 break
-        return self.predict(ep, samples, reasons, cached=len(hits))
 
     def predict(self, ep: Episode, samples: list[Completion | None], reasons: dict[int, str],
                 cached: int) -> Prediction:
@@ -309,9 +324,12 @@ class ZeroShotRun:
             parsed.append(answer.items)
             n_items += answer.n_read
             item_errors += [{"sample": i, "reason": r} for r in answer.item_errors]
-        placements, agg = combine(parsed, self.kind, self.grid, self.cfg.aggregation)
-        diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": self.cfg.n,
-                "cached": cached, "responses": [s.text if s else None for s in samples],
+        n = self.cfg.n
+        anchor = parsed[n] if len(parsed) > n else None
+        placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.aggregation, anchor=anchor)
+        diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": n,
+                "cached": cached, "responses": [s.text if s else None for s in samples[:n]],
+                **({"greedy_response": samples[n].text if samples[n] else None} if len(samples) > n else {}),
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
                 "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors,
                 "n_item_repeats": sum(is_repeat(e["reason"]) for e in item_errors), **agg}

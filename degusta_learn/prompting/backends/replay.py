@@ -1,11 +1,13 @@
 """Replay recorded answers from a file: reproduce a published zero-shot run without calling any API.
 
 `backend.path` is either
-- a JSONL file with one sampled answer a line: `{"episode": "p001/t2/k4", "sample": 0, "text": "[...]"}`, or
-- a predictions.jsonl written by a zero-shot run (its `diagnostics.responses` hold the raw answers).
+- a JSONL file with one sampled answer a line: `{"episode": "p001/t2/k4", "sample": 0, "text": "[...]"}`
+  (`"sample": "greedy"`: the greedy answer `aggregation: greedy_votes` asks for), or
+- a predictions.jsonl written by a zero-shot run (its `diagnostics.responses` hold the raw answers,
+  `diagnostics.greedy_response` the greedy one).
 
-Answers are looked up by the prompt's episode id and sample index; a missing answer counts as a failed
-sample. What it is: local (costs nothing), not cached (the file is the cache), every recorded answer
+Answers are looked up by the prompt's episode id and sample index (at temperature 0, the greedy answer where one
+is recorded); a missing answer counts as a failed sample. What it is: local (costs nothing), not cached (the file is the cache), every recorded answer
 of an episode in one look-up, `structured_output` accepted and ignored (answers of either kind parse).
 
 Example config:
@@ -35,9 +37,13 @@ class ReplayConfig(BackendConfig):
     answer_keys = ("path",)
 
 
-def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
-    """{episode id: {sample index: answer text}} from either file format above."""
-    out: dict[str, dict[int, str]] = {}
+GREEDY = "greedy"
+"""The sample name of a recorded greedy answer."""
+
+
+def read_replay(path: str | Path) -> dict[str, dict[int | str, str]]:
+    """{episode id: {sample index (or "greedy"): answer text}} from either file format above."""
+    out: dict[str, dict[int | str, str]] = {}
     for lineno, row in read_jsonl(path):
         where = f"{path}:{lineno}"
         if not isinstance(row, dict) or not isinstance(row.get("episode"), str):
@@ -45,8 +51,8 @@ def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
         answers = out.setdefault(row["episode"], {})
         if "text" in row:
             sample = row.get("sample", len(answers))
-            if not isinstance(sample, int) or isinstance(sample, bool) or sample < 0:
-                raise DegustaError(f"{where}: sample: expected an integer >= 0, got {sample!r}")
+            if sample != GREEDY and (not isinstance(sample, int) or isinstance(sample, bool) or sample < 0):
+                raise DegustaError(f"{where}: sample: expected an integer >= 0 or \"greedy\", got {str(sample)[:40]!r}")
             if not isinstance(row["text"], str):
                 raise DegustaError(f"{where}: text: expected a string")
             answers[sample] = row["text"]
@@ -60,11 +66,14 @@ def read_replay(path: str | Path) -> dict[str, dict[int, str]]:
             for i, text in enumerate(responses):
                 if isinstance(text, str):
                     answers[i] = text
+            if isinstance(diagnostics.get("greedy_response"), str):
+                answers[GREEDY] = diagnostics["greedy_response"]
     return out
 
 
 class ReplayBackend(Backend):
-    """Answers from a file; `complete(prompt, n)` returns the episode's recorded samples 0..n-1."""
+    """Answers from a file; `complete(prompt, n)` returns the episode's recorded samples 0..n-1 (at temperature 0
+    its recorded greedy answer, if there is one)."""
 
     name = "replay"
     config_class = ReplayConfig
@@ -89,4 +98,6 @@ class ReplayBackend(Backend):
     def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
                  seed: int | None = None) -> list[Completion]:
         recorded = self.answers.get(prompt.episode or "", {})
+        if temperature == 0 and GREEDY in recorded:
+            return [Completion(text=recorded[GREEDY], input_tokens=0, output_tokens=0)]
         return [Completion(text=recorded[i], input_tokens=0, output_tokens=0) for i in range(n) if i in recorded]
