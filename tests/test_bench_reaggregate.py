@@ -1,5 +1,6 @@
-"""benchmarks/reaggregate.py: the vote (predict's `aggregation: votes`, which the script now calls) and greedy + vote
-combinations of sampled answers, on the answers and hand-computed plans the script was first checked with."""
+"""benchmarks/reaggregate.py: the vote and greedy + vote combinations of sampled answers (predict's `aggregation: votes`
+and `greedy_votes`, which the script now calls), on the answers and hand-computed plans the script was first checked
+with."""
 
 from benchmark_support import load_benchmark
 
@@ -29,11 +30,15 @@ def test_votes_take_the_median_length_of_the_most_named_objects_in_their_mean_or
 
 
 def test_greedy_plus_votes_keeps_the_greedy_answer_and_only_lengthens_it():
+    """The script's greedy + votes is predict's `greedy_votes` (`anchored_votes`), on the script's first checks."""
+    from degusta_learn.prompting.aggregate import anchored_votes
+
     bench = load_benchmark("reaggregate")
-    greedy = [Placement(object=9, x=0.5, y=0.5, rotation=0.0)]
-    plan = bench.greedy_plus_votes(greedy, ANSWERS, Grid(8, 8))
-    assert plan[0] == greedy[0] and [p.object for p in plan[1:]] == [1, 2, 4]  # up to the median length, 4
-    long = [Placement(object=k, x=0.5, y=0.5, rotation=0.0) for k in range(10, 16)]
-    assert bench.greedy_plus_votes(long, ANSWERS, Grid(8, 8)) == long  # never shortened
-    assert bench.greedy_plus_votes(greedy, [], Grid(8, 8)) == greedy
+    greedy = [item(9, "D4")]
+    plan = anchored_votes(greedy, ANSWERS, "grid", Grid(8, 8))[0]
+    assert plan[0] == Placement(object=9, x=0.4375, y=0.4375, rotation=0.0)  # D4's centre, as the greedy answer put it
+    assert [p.object for p in plan[1:]] == [1, 2, 4]  # up to the median length, 4
+    long = [item(k, "A1") for k in range(10, 16)]
+    assert [p.object for p in anchored_votes(long, ANSWERS, "grid", Grid(8, 8))[0]] == list(range(10, 16))  # never shortened
+    assert anchored_votes(greedy, [], "grid", Grid(8, 8))[0] == plan[:1]
     assert bench.median_length(ANSWERS) == 4 and bench.median_length([[], []]) == 1  # fixed_length's (at least 1)
