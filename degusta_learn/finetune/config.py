@@ -9,7 +9,7 @@ from degusta_learn.config import bounded, check_choices, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.lora import LoraConfig
 from degusta_learn.optim import OptimConfig
-from degusta_learn.prompting.aggregate import Aggregation
+from degusta_learn.prompting.aggregate import ANCHORED, Aggregation
 from degusta_learn.render.grid import Grid
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.trainer import TrainerConfig
@@ -165,7 +165,7 @@ class EvalConfig:
 
     def __post_init__(self):
         check_choices(self, "eval")  # on_repeat, aggregation: built in Python too (the loader checks YAML)
-        if self.aggregation == "greedy_votes" and self.sampling_temperature == 0:
+        if self.aggregation == ANCHORED and self.sampling_temperature == 0:
             raise DegustaError("eval.aggregation: greedy_votes lengthens a greedy answer by sampled ones; set eval.n "
                                "> 1 (or eval.temperature > 0)")
 

@@ -113,7 +113,7 @@ def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=No
     if not parsed:
         return [], diag
     lengths = [len(r) for r in parsed]
-    length = int(round(float(np.median(lengths))))
+    length = median_length(parsed)
     diag["length"] = length
     diag["length_agreement"] = round(lengths.count(length) / len(parsed), 4)
     named, mean_step, ranked = object_votes(parsed)
@@ -138,13 +138,18 @@ def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerI
     own = [placed(it.id, [it], kind, grid) for it in anchor]
     if not parsed:
         return own, {**diag, "length": len(anchor), "added": []}
-    length = int(round(float(np.median([len(r) for r in parsed]))))
+    length = median_length(parsed)
     named, mean_step, ranked = object_votes(parsed)
     have = {it.id for it in anchor}
     extra = [oid for oid in ranked if oid not in have][:max(0, length - len(anchor))]
     diag["length"] = length
     diag["added"] = [{"id": oid, "votes": len(named[oid]), "mean_step": round(mean_step[oid], 4)} for oid in extra]
     return own + [placed(oid, named[oid], kind, grid) for oid in extra], diag
+
+
+def median_length(parsed: list[list[AnswerItem]]) -> int:
+    """The median of the parsed answers' lengths, rounded half to even (0 where most answers are empty)."""
+    return int(round(float(np.median([len(r) for r in parsed]))))
 
 
 def object_votes(parsed: list[list[AnswerItem]]) -> tuple[dict[int, list[AnswerItem]], dict[int, float], list[int]]:
