@@ -171,8 +171,36 @@ def test_a_dry_run_is_refused_like_the_real_run(adapter, naturalistic_ids, tmp_p
 
 def test_predicting_on_the_validation_participants_is_refused(adapter, naturalistic_ids, tmp_path, no_load):
     with pytest.raises(DegustaError, match=r"^seed: 20 of the 20 participants .* validation participants .* "
-                                           r"chose its checkpoint"):
+                                           r"chose these weights \(to choose a decoding on them, predict the run's "
+                                           r"last weights, adapter/ or model/, of a run without early stopping\)"):
         _predict(naturalistic_ids, adapter, tmp_path, "split=val")
+
+
+def test_the_last_weights_may_be_predicted_on_the_validation_participants(naturalistic_ids, tmp_path):
+    # choosing a decoding (n, temperature, aggregation) on the participants validation is for: the last weights of
+    # a run without early stopping were not chosen on them; the best ones were, and so is every run early stopping
+    # ended; a record written before the key existed is taken as chosen
+    ds = load_dataset(naturalistic_ids)
+    split = split_participants(ds.participants, 0)
+    fingerprint = dataset_identity(ds)
+    last, best, stopped = tmp_path / "adapter", tmp_path / "best_adapter", tmp_path / "stopped"
+    write_meta(last, _cfg(naturalistic_ids), PROCESSOR, chosen_on_val=False)
+    write_meta(best, _cfg(naturalistic_ids), PROCESSOR, chosen_on_val=True)
+    early = load_config(FinetuneConfig, data={"dataset": str(naturalistic_ids), "data": {"render_size": 128},
+                                              "trainer": {"early_stopping_patience": 2}})
+    write_meta(stopped, early, PROCESSOR, chosen_on_val=False)
+    read_record(last / FINETUNE_FILE).check_prediction(fingerprint, set(split["val"]), 128)
+    for folder in (best, stopped):
+        with pytest.raises(DegustaError, match=r"^seed: 20 of the 20 participants .* validation participants"):
+            read_record(folder / FINETUNE_FILE).check_prediction(fingerprint, set(split["val"]), 128)
+    for folder in (last, best, stopped):  # the training participants stay refused whatever chose the weights
+        with pytest.raises(DegustaError, match=r"^seed: 139 of the 139 participants .* training split"):
+            read_record(folder / FINETUNE_FILE).check_prediction(fingerprint, set(split["train"]), 128)
+    older = json.loads((last / FINETUNE_FILE).read_text())
+    del older["trained_on"]["chosen_on_val"]
+    (last / FINETUNE_FILE).write_text(json.dumps(older))
+    with pytest.raises(DegustaError, match=r"validation participants"):
+        read_record(last / FINETUNE_FILE).check_prediction(fingerprint, set(split["val"]), 128)
 
 
 def test_another_dataset_with_the_same_participant_ids_is_refused(adapter, tmp_path, no_load):

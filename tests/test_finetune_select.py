@@ -73,6 +73,10 @@ def test_best_adapter_holds_best_ckpt_and_adapter_the_last(tmp_path, monkeypatch
     selection = json.loads((run / "best_adapter" / SELECTION_FILE).read_text())
     assert selection["step"] == 2 and selection["monitor"] == "val/set_rmsd" and selection["score"] == pytest.approx(0.05)
     assert not list(run.glob(".tmp-*"))  # no export left half-way
+    # validation chose best_adapter/, not adapter/: only the last weights may be predicted on the val participants
+    chosen = {d: json.loads((run / d / "degusta_finetune.json").read_text())["trained_on"]["chosen_on_val"]
+              for d in ("best_adapter", "adapter", ".")}
+    assert chosen == {"best_adapter": True, "adapter": False, ".": True}
 
 
 def test_a_stale_best_adapter_is_redone_from_best_ckpt_at_the_end(tmp_path, monkeypatch):
@@ -97,6 +101,8 @@ def test_early_stopping_and_full_mode_best_model(tmp_path, monkeypatch, capsys):
     name = next(k for k in saved if "layers.0.self_attn.q_proj" in k)
     assert torch.equal(saved[name], best["state_dict"]["model." + name])
     assert not torch.equal(saved[name], load_file(run / "model" / "model.safetensors")[name])
+    # early stopping chose when the last weights were taken: they count as chosen on the validation participants
+    assert json.loads((run / "model" / "degusta_finetune.json").read_text())["trained_on"]["chosen_on_val"] is True
 
 
 def test_finetune_configs_select_on_the_set_score_and_refuse_half_master_weights(tmp_path):

@@ -53,7 +53,7 @@ def write_weights(module, out: Path, selection: dict | None = None) -> Path:
         else:
             module.model.save_pretrained(str(tmp))
             module.processor.save_pretrained(str(tmp))
-        write_meta(tmp, module.cfg, module.processor)
+        write_meta(tmp, module.cfg, module.processor, chosen_on_val=selection is not None)
         if selection is not None:
             atomic_write_json(tmp / SELECTION_FILE, selection)
     return Path(out)

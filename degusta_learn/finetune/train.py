@@ -101,10 +101,11 @@ def check_budget(examples, collator) -> None:
     collator([examples.example(i, heaviest[i])])
 
 
-def write_meta(out: Path, cfg: FinetuneConfig, processor) -> None:
+def write_meta(out: Path, cfg: FinetuneConfig, processor, chosen_on_val: bool = True) -> None:
     """Write the run's `FinetuneRecord` (`degusta_finetune.json`, vlm/record.py) into `out`: how the prompts
     were built, and what the model was trained on (dataset fingerprint, split seed, train and validation
-    participants), which the hf backend checks before predicting."""
+    participants), which the hf backend checks before predicting. `chosen_on_val`: whether validation chose the
+    weights in `out` (a best folder, the run folder) or not (the last weights); early stopping makes it true."""
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset, participants_in
     from degusta_learn.scene.dataset import dataset_identity
@@ -114,7 +115,8 @@ def write_meta(out: Path, cfg: FinetuneConfig, processor) -> None:
     trained_on = TrainingData(
         dataset=cfg.dataset, fingerprint=dataset_identity(ds), seed=cfg.seed, contexts=list(cfg.data.contexts),
         train_participants=participants_in(ds, "train", cfg.seed),
-        val_participants=participants_in(ds, "val", cfg.seed) if cfg.data.val_episodes else [])  # as build_examples
+        val_participants=participants_in(ds, "val", cfg.seed) if cfg.data.val_episodes else [],  # as build_examples
+        chosen_on_val=chosen_on_val or cfg.trainer.early_stopping_patience is not None)
     write_record(out, FinetuneRecord(
         base_model=cfg.model.name, method=cfg.method, mode=cfg.lora.mode,
         grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
@@ -163,7 +165,7 @@ def run(cfg: FinetuneConfig) -> Path:
             return run_dir
         save_last(module, run_dir)  # adapter/ (LoRA) or model/ (full): the last weights
         if module.lora and cfg.lora.merge:
-            write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor)
+            write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor, chosen_on_val=False)
         write_meta(run_dir, cfg, processor)
         sync_best(module, run_dir)  # best_adapter/ or best_model/ = best.ckpt (loads it: keep this last)
         return run_dir

@@ -12,8 +12,9 @@
 checked; anything wrong is one `DegustaError` naming the file and what to do); `locate_record` finds the
 record of a model (adapter folder first, then model folder; a fine-tuning record before a base record).
 The `hf` backend prompts the model as the record says and, before predicting, calls `check_prediction`:
-a `FinetuneRecord` refuses a run that would score the model on participants it was trained or validated
-on (train/test leakage: another split `seed`, or another `dataset` whose participant ids overlap), and
+a `FinetuneRecord` refuses a run that would score the model on participants it was trained on, or validated on
+when validation chose the weights (train/test leakage: another split `seed`, or another `dataset` whose participant
+ids overlap; the last weights of a run without early stopping may be predicted on `split: val`), and
 both records refuse images rendered at another size than in training (`image_size`).
 
 Format versions: a fine-tuning record is format FINETUNE_VERSION; the unversioned file that degusta wrote
@@ -63,6 +64,10 @@ class TrainingData:
     """The participants of the training split (all of them, also when `data.max_train_episodes` subsampled)."""
     val_participants: list[str]
     """The participants of the validation split, which chose the best checkpoint (empty: no validation)."""
+    chosen_on_val: bool = True
+    """Whether validation on `val_participants` chose these weights (a best folder, or a run that early stopping
+    ended; records without the key: true). The last weights of a run without early stopping were not: predicting
+    them on `split: val` is accepted, to choose a decoding on the participants validation is for."""
 
     def check_unseen(self, fingerprint: str, participants: set[str], src: str) -> None:
         """Refuse (one line naming `seed` or `dataset`) predicting on participants the model was trained or
@@ -70,10 +75,13 @@ class TrainingData:
         n = len(participants)
         seen = len(participants & set(self.train_participants))
         val = len(participants & set(self.val_participants))
+        if not self.chosen_on_val and fingerprint == self.fingerprint:
+            val = 0  # the last weights: validation chose neither them nor when to stop
         if (seen or val) and fingerprint == self.fingerprint:
             what = (f"{seen} of the {n} participants predicted here are in this model's training split" if seen else
                     f"{val} of the {n} participants predicted here are the validation participants of this "
-                    "model's training run, which chose its checkpoint")
+                    "model's training run, which chose these weights (to choose a decoding on them, predict the "
+                    "run's last weights, adapter/ or model/, of a run without early stopping)")
             raise DegustaError(f"seed: {what} ({src}: trained with seed {self.seed} on this dataset); predict with "
                                f"seed={self.seed} and split=test, the participants it never saw")
         if seen or val:
