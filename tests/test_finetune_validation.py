@@ -82,7 +82,7 @@ def test_validation_batches_by_eval_batch_size(tiny, monkeypatch):
     assert _module(tiny).cfg.eval.batch_size is None  # data.batch_size then
 
 
-@pytest.mark.parametrize("aggregation", ["steps", "votes", "greedy_votes"])
+@pytest.mark.parametrize("aggregation", ["steps", "votes", "greedy_votes", "greedy_votes_pooled"])
 def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_path, aggregation):
     """eval.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers
     (`eval.aggregation` as predict's `aggregation`; greedy_votes: one more, greedy generate call)."""
@@ -108,12 +108,12 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
     module = _module(tiny, n=4, aggregation=aggregation)
     row = module.score_batch([ex], True, [7])[0]
     sampled = {"n": 4, "temperature": 1.0, "seeds": [module.cfg.seed + 7], "on_repeat": "skip"}
-    assert calls == [sampled] + ([{**sampled, "n": 1, "temperature": 0.0}] if aggregation == "greedy_votes" else [])
+    assert calls == [sampled] + ([{**sampled, "n": 1, "temperature": 0.0}] if aggregation.startswith("greedy") else [])
 
     cfg = ZeroShotConfig(dataset=str(save_dataset(ds, tmp_path / "data")), out=str(tmp_path / "p.jsonl"),
                          method="mogma", n=4, cache="off", aggregation=aggregation)
     ep = next(e for e in examples(context=2, split="val").episodes if e.id == ex.episode)
-    answers = texts + ([greedy] if aggregation == "greedy_votes" else [])
+    answers = texts + ([greedy] if aggregation.startswith("greedy") else [])
     pred = ZeroShotRun(cfg, ds).predict(ep, [Completion(t, 10, 10, {}) for t in answers], {}, cached=0)
     expected = score_prediction(ds.catalog, gt, pred.placements, pred.failed)
     assert row["placements"] == pred.placements and row["parsed"] == 0.75
@@ -139,6 +139,8 @@ def test_greedy_votes_validation_needs_samples():
     with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes lengthens a greedy answer"):
         EvalConfig(aggregation="greedy_votes")  # n 1: greedy, nothing to vote
     assert EvalConfig(aggregation="greedy_votes", n=5).sampling_temperature == 1.0
+    with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes_pooled lengthens a greedy answer"):
+        EvalConfig(aggregation="greedy_votes_pooled", n=5, temperature=0.0)
 
 
 def test_validation_images_png_and_tensorboard(tmp_path):

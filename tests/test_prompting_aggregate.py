@@ -180,3 +180,9 @@ def test_greedy_votes_keep_the_greedy_answer_and_add_the_most_voted_objects_it_l
     assert combine([None, None], "unmarked", how="greedy_votes", anchor=greedy)[1]["failed"] is False  # no samples
     fallback, d = combine(samples, "unmarked", how="greedy_votes", anchor=None)
     assert d["anchor"] == "unparsed" and fallback == aggregate_votes(samples, "unmarked")[0]
+    # pooled: the same objects and added places; the greedy answer's objects at the mean of it and the samples
+    # naming them (plate 80: (0.5, 0.5) and (0.5, 0.6); fork 30: (0.3, 0.5) and (0.2, 0.5))
+    pooled, d = combine(samples, "unmarked", how="greedy_votes_pooled", anchor=greedy)
+    assert [p.object for p in pooled] == [80, 30, 1, 60] and pooled[2:] == placements[2:]
+    assert (pooled[0].x, pooled[0].y) == pytest.approx((0.5, 0.55)) and pooled[1].x == pytest.approx(0.25)
+    assert d["aggregation"] == "greedy_votes_pooled" and d["added"] == diag["added"]

@@ -16,6 +16,7 @@ from degusta_learn.prompting.backends.base import (
     BACKENDS, BackendConfig, backend_class, backend_config, make_backend, redact,
 )
 from degusta_learn.prompting.costs import Ledger, price
+from degusta_learn.render.grid import Grid
 from degusta_learn.scene import make_episodes, read_predictions, save_dataset
 
 GOOD = "[{'type': 'plate', 'id': 75, 'position': ['D4'], 'cardinal_direction': 'N'}]"
@@ -165,6 +166,13 @@ def test_predict_lengthens_the_greedy_answer_by_votes(tmp_path):
     assert [a["id"] for a in got[0].diagnostics["added"]] == [plate, cup]
     again = run_predict(None, base + [f"backend.path={first}", f"out={tmp_path / 'b' / 'predictions.jsonl'}"])
     assert [p.placements for p in read_predictions(again, ds.catalog)] == [p.placements for p in got]
+    # pooled: the same objects, the greedy fork placed from its own answer (H8) and the two samples naming it (C3)
+    pooled = run_predict(None, base + [f"backend.path={first}", "aggregation=greedy_votes_pooled",
+                                       f"out={tmp_path / 'p' / 'predictions.jsonl'}"])
+    fork_pooled = read_predictions(pooled, ds.catalog)[0].placements
+    assert [p.object for p in fork_pooled] == [fork, plate, cup] and fork_pooled[1:] == got[0].placements[1:]
+    grid = Grid(8, 8)
+    assert fork_pooled[0].x == pytest.approx(grid.decode_weighted([["H8"], ["C3"], ["C3"]])[0])
     with pytest.raises(DegustaError, match="temperature: expected > 0 with aggregation greedy_votes"):
         run_predict(None, base + ["temperature=0", f"backend.path={answers}",
                                   f"out={tmp_path / 'c' / 'predictions.jsonl'}"])

@@ -148,7 +148,8 @@ class EvalConfig:
     aggregation: Aggregation = "steps"
     """n > 1: how the answers become one plan, as predict's `aggregation` (steps: the paper's; votes: the objects
     most answers name, as many as the median answer's length; greedy_votes: one more, greedy answer lengthened
-    by the samples' votes, a second `generate` call)."""
+    by the samples' votes, a second `generate` call; greedy_votes_pooled: the same objects, each placed from every
+    answer naming it)."""
     temperature: float | None = bounded(None, 0.0, 10.0)
     """Sampling temperature of the validation answers; null: 0 (greedy) at n = 1, 1.0 (predict's default) at
     n > 1. Samples are seeded by `seed` and the episode's position, so a validation is reproducible."""
@@ -165,9 +166,9 @@ class EvalConfig:
 
     def __post_init__(self):
         check_choices(self, "eval")  # on_repeat, aggregation: built in Python too (the loader checks YAML)
-        if self.aggregation == ANCHORED and self.sampling_temperature == 0:
-            raise DegustaError("eval.aggregation: greedy_votes lengthens a greedy answer by sampled ones; set eval.n "
-                               "> 1 (or eval.temperature > 0)")
+        if self.aggregation in ANCHORED and self.sampling_temperature == 0:
+            raise DegustaError(f"eval.aggregation: {self.aggregation} lengthens a greedy answer by sampled ones; set "
+                               "eval.n > 1 (or eval.temperature > 0)")
 
 
 @dataclass

@@ -141,7 +141,7 @@ class FinetuneModule(L.LightningModule):
                                  max_new_tokens=e.max_new_tokens, constrained=constrained, grammar=grammar,
                                  seeds=seeds, on_repeat=e.on_repeat)
         greedy = [None] * len(examples)
-        if e.aggregation == ANCHORED:  # + the greedy answer, as predict asks for it
+        if e.aggregation in ANCHORED:  # + the greedy answer, as predict asks for it
             greedy = [c[0].text for c in generate_batch(self.model, self.processor, prompts, n=1, temperature=0.0,
                                                         max_new_tokens=e.max_new_tokens, constrained=constrained,
                                                         grammar=grammar, seeds=seeds, on_repeat=e.on_repeat)]

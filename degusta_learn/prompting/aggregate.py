@@ -29,7 +29,9 @@ Greedy + votes, `anchored_votes` (`aggregation: greedy_votes`; docs/tiny_base.md
 greedy answer (one more answer, at temperature 0) keeps its objects and places, and is lengthened, never shortened,
 to the n samples' median length by the best-voted objects it lacks (each placed from every sample naming it). For a
 model whose greedy lists end early but whose samples' lengths follow the person's count. An unparseable greedy
-answer falls back to votes.
+answer falls back to votes. `greedy_votes_pooled` (docs/tiny_base.md point 40): the same objects, each of the greedy
+answer's placed from the greedy answer and every sample naming it (the mean of their cells), as votes places its
+objects: chosen over `greedy_votes` on the validation participants (`benchmarks/choose_decoding.py`).
 
 Example:
     placements, diag = aggregate([parse_answer(t, "grid", catalog, grid) for t in texts], "grid", grid)
@@ -56,22 +58,24 @@ def _ranked(values: list) -> list:
     return sorted(counts, key=lambda v: (-counts[v], first[v]))
 
 
-Aggregation = Literal["steps", "votes", "greedy_votes"]
+Aggregation = Literal["steps", "votes", "greedy_votes", "greedy_votes_pooled"]
 """How n answers become one plan: the paper's per-step modes, object votes, or the greedy answer lengthened by
-votes (module docstring); the configs' `aggregation` / `eval.aggregation` type."""
+votes, its objects kept where it puts them or placed from every answer naming them (module docstring); the configs'
+`aggregation` / `eval.aggregation` type."""
 AGGREGATIONS = get_args(Aggregation)
-ANCHORED = "greedy_votes"
-"""The aggregation that asks for one more answer, at temperature 0 (the anchor)."""
+ANCHORED = ("greedy_votes", "greedy_votes_pooled")
+"""The aggregations that ask for one more answer, at temperature 0 (the anchor)."""
 
 
 def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how: str = "steps",
             anchor: list[AnswerItem] | None = None) -> tuple[list[Placement], dict[str, Any]]:
-    """`aggregate` (how="steps"), `aggregate_votes` (how="votes") or `anchored_votes` (how="greedy_votes", with the
-    greedy answer's items as `anchor`, None if it did not parse); the diagnostics name the aggregation."""
+    """`aggregate` (how="steps"), `aggregate_votes` (how="votes") or `anchored_votes` (how="greedy_votes" or
+    "greedy_votes_pooled", with the greedy answer's items as `anchor`, None if it did not parse); the diagnostics
+    name the aggregation."""
     if how not in AGGREGATIONS:
         raise DegustaError(f"aggregation: expected one of {list(AGGREGATIONS)}, got {how!r}")
-    if how == ANCHORED:
-        placements, diag = anchored_votes(anchor, responses, kind, grid)
+    if how in ANCHORED:
+        placements, diag = anchored_votes(anchor, responses, kind, grid, pooled=how == "greedy_votes_pooled")
     else:
         placements, diag = (aggregate if how == "steps" else aggregate_votes)(responses, kind, grid)
     return placements, {"aggregation": how, **diag}
@@ -122,9 +126,11 @@ def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=No
     return [placed(oid, named[oid], kind, grid) for oid in chosen], diag
 
 
-def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerItem] | None], kind: str, grid=None
-                   ) -> tuple[list[Placement], dict[str, Any]]:
+def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerItem] | None], kind: str, grid=None,
+                   pooled: bool = False) -> tuple[list[Placement], dict[str, Any]]:
     """The greedy answer `anchor` lengthened by votes (module docstring); `aggregate_votes` when it is None.
+    `pooled`: each of the anchor's objects is placed from the anchor and every sample naming it (else: where the
+    anchor puts it).
 
     Returns (the anchor's placements, then the added objects in order of their votes; diagnostics with n_responses,
     n_parsed, failed, `anchor` (its length, or "unparsed"), length (the samples' median, or the anchor's without
@@ -135,11 +141,11 @@ def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerI
         return placements, {**diag, "anchor": "unparsed"}
     grid, parsed, diag = _start(responses, kind, grid)
     diag.update(failed=False, anchor=len(anchor))
-    own = [placed(it.id, [it], kind, grid) for it in anchor]
     if not parsed:
-        return own, {**diag, "length": len(anchor), "added": []}
+        return [placed(it.id, [it], kind, grid) for it in anchor], {**diag, "length": len(anchor), "added": []}
     length = median_length(parsed)
     named, mean_step, ranked = object_votes(parsed)
+    own = [placed(it.id, [it] + (named.get(it.id, []) if pooled else []), kind, grid) for it in anchor]
     have = {it.id for it in anchor}
     extra = [oid for oid in ranked if oid not in have][:max(0, length - len(anchor))]
     diag["length"] = length

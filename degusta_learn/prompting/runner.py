@@ -80,8 +80,9 @@ class ZeroShotConfig(PredictConfig):
     """How the n answers become one plan (prompting/aggregate.py): steps, the paper's (per step the mode type and
     id, the mode length); votes, the objects most answers name, as many as the median answer's length;
     greedy_votes, one more answer at temperature 0 (the greedy one) lengthened to the samples' median length by
-    their most named objects it lacks. Applied to the stored answers, so changing it re-uses the response cache
-    (greedy_votes asks only for the greedy answers a cache lacks)."""
+    their most named objects it lacks; greedy_votes_pooled, the same objects, the greedy answer's each placed from
+    it and every sample naming it. Applied to the stored answers, so changing it re-uses the response cache
+    (greedy_votes and greedy_votes_pooled ask only for the greedy answers a cache lacks)."""
     temperature: float = 1.0
     """Sampling temperature (the APIs' default 1.0; 0 makes the n samples near-identical)."""
     concurrency: int = 4
@@ -113,8 +114,9 @@ class ZeroShotConfig(PredictConfig):
         super().__post_init__()
         checks = [("n", self.n >= 1, ">= 1"), ("concurrency", self.concurrency >= 1, ">= 1"),
                   ("temperature", self.temperature >= 0, ">= 0"), ("image_size", self.image_size >= 64, ">= 64"),
-                  ("temperature", self.temperature > 0 or self.aggregation != ANCHORED,
-                   "> 0 with aggregation greedy_votes (its n answers are sampled, the greedy one is asked apart)"),
+                  ("temperature", self.temperature > 0 or self.aggregation not in ANCHORED,
+                   f"> 0 with aggregation {self.aggregation} (its n answers are sampled, the greedy one is asked "
+                   "apart)"),
                   ("max_retries", self.max_retries >= 0, ">= 0"), ("backoff", self.backoff >= 0, ">= 0"),
                   ("backoff_max", self.backoff_max >= 0, ">= 0"),
                   ("budget_usd", self.budget_usd is None or self.budget_usd >= 0, ">= 0"),
@@ -199,7 +201,7 @@ class ZeroShotRun:
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
                               structured=c.backend.structured_output)
         keys = sample_keys(prompt, c.backend, c.temperature, c.backend.max_tokens, c.seed, c.n, schema=self.schema)
-        if c.aggregation == ANCHORED:  # + the greedy answer: the key a greedy run (n 1, temperature 0) gives it
+        if c.aggregation in ANCHORED:  # + the greedy answer: the key a greedy run (n 1, temperature 0) gives it
             keys += sample_keys(prompt, c.backend, 0.0, c.backend.max_tokens, c.seed, 1, schema=self.schema)
         return prompt, keys
 

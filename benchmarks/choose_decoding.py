@@ -1,0 +1,127 @@
+"""Choose a decoding on the validation participants, then score only that one on the test episodes.
+
+A fine-tune's answers to the same prompts can become one plan in several ways (`prompting/aggregate.py`): the greedy
+answer, the paper's per-step modes, object votes, the greedy answer lengthened by votes (`greedy_votes`), and that
+with each of the greedy answer's objects placed from every answer naming it (`greedy_votes` + `pooled`). One
+`degusta predict` run with `aggregation: greedy_votes` stores everything they need per episode (the n sampled
+answers in `diagnostics.responses`, the greedy one in `diagnostics.greedy_response`), so every way is scored from
+the same answers here, without asking the model again.
+
+Run it on predictions of the validation participants (`--split val`: the last weights, `adapter/`, of runs without
+early stopping may be predicted there; docs/finetune.md, the leakage guard) to choose, by `--by` (default: the
+set-aware score, which no short answer games), then on the test episodes' predictions with `--only CHOSEN` to
+report the chosen way alone. Several files (one per training seed, the same episodes) add a row of each episode's
+mean over the seeds, which the paired tests against `population_mean` use (nan where no seed matched an object).
+
+Usage:
+    degusta predict --config configs/predict_hf_transcribe_finetuned.yaml --set split=val \\
+        --set backend.adapter=RUN/adapter --set out=OUT/val_s0.jsonl            # one per seed
+    python benchmarks/choose_decoding.py --dataset data/naturalistic --split val OUT/val_s0.jsonl OUT/val_s1.jsonl
+    python benchmarks/choose_decoding.py --dataset data/naturalistic --split test --only votes TEST_s0.jsonl ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import numpy as np
+
+METRICS = ("object_accuracy", "rmsd", "set_rmsd", "count_error", "n_pred")
+LOWER_IS_BETTER = {"rmsd": True, "set_rmsd": True, "count_error": True, "object_accuracy": False}
+
+
+def parsed(text, catalog, grid):
+    """The items of one stored answer, or None when it is missing or does not parse (as predict reads it)."""
+    from degusta_learn.prompting.answers import AnswerParseError, read_answer
+
+    if not isinstance(text, str):
+        return None
+    try:
+        return read_answer(text, "grid", catalog, grid).items
+    except AnswerParseError:
+        return None
+
+
+def decodings(prediction, catalog, grid) -> dict[str, list]:
+    """Every way's placements for one prediction of a greedy_votes run."""
+    from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, anchored_votes
+
+    diag = prediction.diagnostics or {}
+    samples = [parsed(t, catalog, grid) for t in diag.get("responses") or []]
+    greedy = parsed(diag.get("greedy_response"), catalog, grid)
+    if not samples or "greedy_response" not in diag:
+        raise SystemExit(f"error: episode {prediction.episode}: no stored answers (predict with n > 1 and "
+                         "aggregation: greedy_votes)")
+    return {
+        "greedy": anchored_votes(greedy, [], "grid", grid)[0] if greedy is not None else [],
+        "steps": aggregate(samples, "grid", grid)[0],
+        "votes": aggregate_votes(samples, "grid", grid)[0],
+        "greedy_votes": anchored_votes(greedy, samples, "grid", grid)[0],
+        "greedy_votes_pooled": anchored_votes(greedy, samples, "grid", grid, pooled=True)[0],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("predictions", nargs="+", help="greedy_votes predictions, one file per training seed")
+    ap.add_argument("--dataset", required=True)
+    ap.add_argument("--split", required=True, choices=["val", "test"])
+    ap.add_argument("--context", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0, help="the participant split seed (the training run's)")
+    ap.add_argument("--only", help="score this way alone (the one chosen on the validation participants)")
+    ap.add_argument("--by", default="set_rmsd", choices=sorted(LOWER_IS_BETTER), help="the score that chooses")
+    ap.add_argument("--rows", type=int, default=8)
+    ap.add_argument("--cols", type=int, default=8)
+    args = ap.parse_args()
+
+    from degusta_learn.methods import get_method
+    from degusta_learn.metrics import paired_bootstrap, score_many
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import load_dataset, make_episodes, read_predictions
+
+    ds, grid = load_dataset(args.dataset), Grid(args.rows, args.cols)
+    episodes = make_episodes(ds, args.context, args.split, args.seed)
+    order = [e.id for e in episodes]
+    gts = [ds.arrangement(e.participant, e.target) for e in episodes]
+    spec = get_method("population_mean")
+    pop = {p.episode: p for p in spec.run(spec.config_cls(method="population_mean", dataset=args.dataset, out="",
+                                                          split=args.split), ds, episodes)}
+
+    def scores(preds) -> dict[str, np.ndarray]:
+        return {k: np.array([getattr(s, k) for s in score_many(ds.catalog, gts, preds)], float) for k in METRICS}
+
+    runs = []  # per file: way -> metric -> per-episode values
+    for path in args.predictions:
+        by = {p.episode: p for p in read_predictions(path, ds.catalog)}
+        missing = [i for i in order if i not in by]
+        if missing:
+            raise SystemExit(f"error: {path} lacks {len(missing)} of the {len(order)} {args.split} episodes "
+                             f"(context {args.context}, seed {args.seed}; first: {missing[0]})")
+        ways = {i: decodings(by[i], ds.catalog, grid) for i in order}
+        names = [args.only] if args.only else list(ways[order[0]])
+        if args.only and args.only not in ways[order[0]]:
+            raise SystemExit(f"error: --only: one of {list(ways[order[0]])}")
+        runs.append({w: scores([dataclasses.replace(by[i], placements=ways[i][w]) for i in order]) for w in names})
+    base = scores([pop[i] for i in order])
+    mean = {w: {k: np.nanmean([r[w][k] for r in runs], axis=0) for k in METRICS} for w in runs[0]}
+
+    print(f"{len(order)} {args.split} episodes (context {args.context}), {len(runs)} file(s); population_mean: "
+          + ", ".join(f"{k} {np.nanmean(base[k]):.3f}" for k in METRICS if k != "n_pred"))
+    print("\n| decoding | object accuracy | Kabsch RMSD (paper) | set RMSD | count error | objects / answer | "
+          "Kabsch vs population_mean (p) | set RMSD vs population_mean (p) | per file: object acc. / Kabsch |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for w, c in mean.items():
+        cells = " | ".join(f"{np.nanmean(c[k]):.{2 if k == 'n_pred' else 3}f}" for k in METRICS)
+        vs = " | ".join(f"{t['diff']:+.4f} [{t['lo']:+.4f}, {t['hi']:+.4f}] (p {t['p_value']:.4f})"
+                        for t in (paired_bootstrap(c[k], base[k], n_resamples=10_000) for k in ("rmsd", "set_rmsd")))
+        per = ", ".join(f"{np.nanmean(r[w]['object_accuracy']):.3f} / {np.nanmean(r[w]['rmsd']):.3f}" for r in runs)
+        print(f"| {w} | {cells} | {vs} | {per} |")
+    if not args.only:
+        sign = 1 if LOWER_IS_BETTER[args.by] else -1
+        best = min(mean, key=lambda w: sign * np.nanmean(mean[w][args.by]))
+        print(f"\nchosen by {args.by} (mean over the files): {best}")
+
+
+if __name__ == "__main__":
+    main()

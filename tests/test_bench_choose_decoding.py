@@ -1,0 +1,59 @@
+"""benchmarks/choose_decoding.py: every way of combining one greedy_votes run's stored answers, scored from the same
+answers, and the choice made on a score that a short answer cannot game."""
+
+import sys
+
+import pytest
+from benchmark_support import load_benchmark
+
+from degusta_learn.prompting.aggregate import aggregate_votes, anchored_votes
+from degusta_learn.prompting.answers import answer_items, format_answer
+from degusta_learn.render.grid import Grid
+from degusta_learn.scene import Prediction, load_dataset, make_episodes, write_predictions
+
+bench = load_benchmark("choose_decoding")
+G = Grid(8, 8)
+
+
+def _run(ds, split: str, answers) -> list[Prediction]:
+    """A greedy_votes predictions file: per episode the greedy answer and five samples, as `answers(truth)` says."""
+    out = []
+    for e in make_episodes(ds, 4, split, 0):
+        truth = answer_items(ds.arrangement(e.participant, e.target).placements, ds.catalog, "grid", G)
+        greedy, samples = answers(truth)
+        out.append(Prediction(e.id, e.participant, e.target, "mogma", [], diagnostics={
+            "responses": [format_answer(s, "grid") for s in samples], "greedy_response": format_answer(greedy, "grid")}))
+    return out
+
+
+def test_each_way_is_the_librarys_aggregation_of_the_stored_answers(small_dataset):
+    e = make_episodes(small_dataset, 4, "test", 0)[0]
+    truth = answer_items(small_dataset.arrangement(e.participant, e.target).placements, small_dataset.catalog, "grid", G)
+    samples = [truth[:1], truth[::-1], truth[1:], truth]
+    pred = Prediction(e.id, e.participant, e.target, "mogma", [], diagnostics={
+        "responses": [format_answer(s, "grid") for s in samples] + ["not an answer"],
+        "greedy_response": format_answer(truth[:2], "grid")})
+    ways = bench.decodings(pred, small_dataset.catalog, G)
+    assert list(ways) == ["greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled"]
+    assert ways["votes"] == aggregate_votes(samples, "grid", G)[0]
+    assert ways["greedy_votes"] == anchored_votes(truth[:2], samples, "grid", G)[0]
+    assert ways["greedy_votes_pooled"] == anchored_votes(truth[:2], samples, "grid", G, pooled=True)[0]
+    assert [p.object for p in ways["greedy"]] == [it.id for it in truth[:2]]
+
+
+def test_the_choice_is_made_on_the_set_score_not_on_short_answers(small_dataset_dir, tmp_path, monkeypatch, capsys):
+    ds = load_dataset(small_dataset_dir)
+    # the greedy answers are the truth; the samples name its first object alone (Kabsch RMSD 0 by construction)
+    path = tmp_path / "val.jsonl"
+    write_predictions(path, _run(ds, "val", lambda t: (t, [t[:1]] * 5)))
+    monkeypatch.setattr(sys, "argv", ["choose_decoding.py", str(path), "--dataset", str(small_dataset_dir),
+                                      "--split", "val"])
+    bench.main()
+    out = capsys.readouterr().out
+    assert "chosen by set_rmsd (mean over the files): greedy\n" in out
+    votes = next(line for line in out.splitlines() if line.startswith("| votes |"))
+    assert votes.split(" | ")[5] == "1.00"  # one object an answer
+    monkeypatch.setattr(sys, "argv", ["choose_decoding.py", str(path), "--dataset", str(small_dataset_dir),
+                                      "--split", "test"])
+    with pytest.raises(SystemExit, match=r"lacks \d+ of the \d+ test episodes"):
+        bench.main()
