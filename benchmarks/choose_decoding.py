@@ -28,6 +28,8 @@ import dataclasses
 import numpy as np
 
 METRICS = ("object_accuracy", "rmsd", "set_rmsd", "count_error", "n_pred")
+WAYS = ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled")
+"""The aggregations `decodings` scores, in its order."""
 LOWER_IS_BETTER = {"rmsd": True, "set_rmsd": True, "count_error": True, "object_accuracy": False}
 
 
@@ -69,7 +71,7 @@ def main() -> None:
     ap.add_argument("--split", required=True, choices=["val", "test"])
     ap.add_argument("--context", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0, help="the participant split seed (the training run's)")
-    ap.add_argument("--only", help="score this way alone (the one chosen on the validation participants)")
+    ap.add_argument("--only", choices=WAYS, help="score this way alone (the one chosen on the validation participants)")
     ap.add_argument("--by", default="set_rmsd", choices=sorted(LOWER_IS_BETTER), help="the score that chooses")
     ap.add_argument("--rows", type=int, default=8)
     ap.add_argument("--cols", type=int, default=8)
@@ -99,9 +101,7 @@ def main() -> None:
             raise SystemExit(f"error: {path} lacks {len(missing)} of the {len(order)} {args.split} episodes "
                              f"(context {args.context}, seed {args.seed}; first: {missing[0]})")
         ways = {i: decodings(by[i], ds.catalog, grid) for i in order}
-        names = [args.only] if args.only else list(ways[order[0]])
-        if args.only and args.only not in ways[order[0]]:
-            raise SystemExit(f"error: --only: one of {list(ways[order[0]])}")
+        names = [args.only] if args.only else WAYS
         runs.append({w: scores([dataclasses.replace(by[i], placements=ways[i][w]) for i in order]) for w in names})
     base = scores([pop[i] for i in order])
     mean = {w: {k: np.nanmean([r[w][k] for r in runs], axis=0) for k in METRICS} for w in runs[0]}

@@ -34,7 +34,7 @@ def test_each_way_is_the_librarys_aggregation_of_the_stored_answers(small_datase
         "responses": [format_answer(s, "grid") for s in samples] + ["not an answer"],
         "greedy_response": format_answer(truth[:2], "grid")})
     ways = bench.decodings(pred, small_dataset.catalog, G)
-    assert list(ways) == ["greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled"]
+    assert tuple(ways) == bench.WAYS == ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled")
     assert ways["votes"] == aggregate_votes(samples, "grid", G)[0]
     assert ways["greedy_votes"] == anchored_votes(truth[:2], samples, "grid", G)[0]
     assert ways["greedy_votes_pooled"] == anchored_votes(truth[:2], samples, "grid", G, pooled=True)[0]
