@@ -169,6 +169,8 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                       pad_token_id=tok.pad_token_id if tok.pad_token_id is not None else fmt.end_id,
                       logits_processor=LogitsProcessorList([sampler]))
         with torch.no_grad():
+            if per_prompt > 1 and shares_prompt_pass(model):
+                inputs, kwargs["num_return_sequences"] = shared_prompt_pass(model, inputs, per_prompt), 1
             out = model.generate(**inputs, **kwargs)
         lengths = inputs["attention_mask"].sum(dim=1).tolist() if "attention_mask" in inputs else [prompt_len]
         rows = []
@@ -187,7 +189,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
     if constrained:
         decoding = [{"constrained": True, "forced_close": sampler.forced_close[r],
                      "grammar_changed": sampler.grammar_changed[r], "repeat_stop": sampler.repeat_stop[r],
-                     "free_text": None, "free_cut": False}
+                     "free_text": None, "free_cut": False, **({} if free_pass else {"free_pass": False})}
                     for r in range(len(rows))]
         if on_repeat == "substitute":
             for r, (own, *rest) in enumerate(rows):
@@ -212,6 +214,44 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                            for c in completions * n]
         out.append(completions)
     return out
+
+
+SHARED_PASS_MODELS = ("fast_vlm", "idefics3", "smolvlm")
+"""Model types whose n answers to one prompt share one pass over the prompt (`shared_prompt_pass`): their positions
+are plain 1-D counts. Others (e.g. Qwen2-VL's 3-D multimodal RoPE, set up in its own first generation step) repeat
+the prompt n times as `generate`'s `num_return_sequences` does."""
+
+
+def shares_prompt_pass(model) -> bool:
+    """True when `model`'s n answers to a prompt may share one pass over it (`SHARED_PASS_MODELS`)."""
+    return getattr(getattr(model, "config", None), "model_type", None) in SHARED_PASS_MODELS
+
+
+def shared_prompt_pass(model, inputs: dict, k: int) -> dict:
+    """`generate` inputs for k answers per prompt row that run the prompt (images included) through the model once.
+
+    `generate` with `num_return_sequences=k` copies every prompt k times before its first step (the images are
+    encoded once), so the decoder's pass over a prompt of ~1,500 tokens runs k times for answers that differ only
+    from their first new token on. Here the prompt, all but its last token, runs once; its key/value cache is repeated k times per row
+    (`Cache.batch_repeat_interleave`, the order `num_return_sequences` gives) and `generate` continues from it, its
+    first step being the prompt's last token. Positions are those `generate` gives a left-padded prompt (the
+    attention mask's running count). The logits match the plain path's up to floating-point order
+    (tests/test_vlm_generate.py compares the answers).
+
+    Returns:
+        input_ids and attention_mask repeated k times per row, and `cache` (no pixel values: the cache holds them).
+    """
+    ids = inputs["input_ids"]
+    mask = inputs.get("attention_mask")
+    mask = torch.ones_like(ids) if mask is None else mask
+    positions = (mask.long().cumsum(-1) - 1).masked_fill(mask == 0, 0)
+    rest = {key: v for key, v in inputs.items() if key not in ("input_ids", "attention_mask")}
+    out = model(input_ids=ids[:, :-1], attention_mask=mask[:, :-1], position_ids=positions[:, :-1], use_cache=True,
+                **rest)
+    cache = out.cache if getattr(out, "cache", None) is not None else out.past_key_values
+    cache.batch_repeat_interleave(k)
+    return {"input_ids": ids.repeat_interleave(k, dim=0), "attention_mask": mask.repeat_interleave(k, dim=0),
+            "cache": cache}
 
 
 _ITEM = re.compile(r"'id': (\d+), 'position': (\[[^\]]*\])")
