@@ -43,6 +43,10 @@ def test_decoding_diagnostics_count_closes_and_free_parses():
     free = [Completion("x", decoding={"constrained": False, "cut": True}), Completion(GOOD, decoding={"constrained": False, "cut": False})]
     assert decoding_diagnostics(free, "grid", cat, GRID) == {"constrained": False, "known": 2, "forced_closes": 1}
     assert decoding_diagnostics([Completion(GOOD), None], "grid", cat, GRID) == {}  # remote / cached: nothing claimed
+    # backend.report_unconstrained: false: no free answers were decoded, so none is claimed (not even the unchanged)
+    off = [Completion(GOOD, 10, 20, {**c.decoding, "free_pass": False}) for c in (constrained(False), constrained(True))]
+    d = decoding_diagnostics(off, "grid", cat, GRID)
+    assert d["grammar_changed"] == 1 and (d["free_known"], d["free_parsed"]) == (0, 0)
 
 
 def _prediction(ep, decoding: dict | None, n=4, parsed=4, **diagnostics) -> Prediction:
@@ -69,6 +73,9 @@ def test_summary_line_labels_and_answer_table():
     assert "items: 9 of 30 dropped (30.0%);" in failure_summary(  # older predictions: no repeat count
         [Prediction(p.episode, p.participant, p.target, p.method, p.placements, False,
                     {k: v for k, v in p.diagnostics.items() if k != "n_item_repeats"}) for p in items])
+    unmeasured = failure_summary([_prediction(ep, {**dec, "free_known": 0, "free_parsed": 0}) for ep in eps])
+    assert unmeasured.endswith("the grammar changed 9 (their free answers not decoded: backend.report_unconstrained "
+                               "is false)") and "would parse" not in unmeasured
     free = [_prediction(ep, {"constrained": False, "known": 4, "forced_closes": 2}, parsed=3) for ep in eps]
     assert "6 of 12 answers cut off by the token budget (50.0%)" in failure_summary(free)
 
@@ -128,3 +135,13 @@ def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thr
     text = (Path(report) / "report.md").read_text()
     # (random weights write one object again and again: on_repeat skip keeps it once, degenerate, to the budget)
     assert "mogma + grammar" in text and " | answer grammar | 1 | 1.000 | 0.000 | 1.000 |" in text
+    # backend.report_unconstrained: false: the same answer, no free answer decoded, and the summary says so
+    lines.clear()
+    off = run_predict(CONFIGS / "predict_hf_tiny_zeroshot.yaml", [
+        f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'off' / 'predictions.jsonl'}",
+        f"backend.model={tiny_dir('idefics3')}", "image_size=128", "backend.report_unconstrained=false"],
+        log=lines.append)
+    (p_off,) = read_predictions(off, dataset().catalog)
+    assert p_off.diagnostics["responses"] == preds[0].diagnostics["responses"]
+    assert p_off.diagnostics["decoding"]["free_known"] == 0 and p_off.diagnostics["decoding"]["free_responses"] == [None]
+    assert any("their free answers not decoded: backend.report_unconstrained is false" in line for line in lines), lines

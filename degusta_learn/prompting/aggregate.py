@@ -256,7 +256,7 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
         out["substituted"] = swaps
     free_known = free_parsed = free_items = free_dropped = 0
     for s, d in zip(samples, decs):
-        if d is None:
+        if d is None or d.get("free_pass") is False:  # no free answers asked for (`report_unconstrained: false`)
             continue
         # an answer the grammar did not change is its own free answer
         text = d.get("free_text") if d.get("grammar_changed") else s.text
@@ -313,12 +313,15 @@ def failure_summary(predictions) -> str:
             items_note = f"; {dropped} of their {items} items dropped, {_pct(dropped, items)}" if free else ""
             repeats = sum(_count(d.get("repeat_stops")) for d in decs)
             swapped = sum(_count(d.get("substitutions")) for d in decs)
+            free_note = (f"; without the grammar {free} of {free_known} would parse "
+                         f"({_pct(free, free_known)}; the grammar changed {changed}{items_note})" if free_known else
+                         f"; the grammar changed {changed} (their free answers not decoded: "
+                         "backend.report_unconstrained is false)")
             line += (f"; decoded inside the answer grammar: {closed} of {known} answers closed early by the token "
                      f"budget ({_pct(closed, known)})"
                      + (f", {repeats} ended where the model named an object again" if repeats else "")
                      + (f", {swapped} items naming an object again given another id" if swapped else "")
-                     + f"; without the grammar {free} of {free_known} would parse "
-                     f"({_pct(free, free_known)}; the grammar changed {changed}{items_note})")
+                     + free_note)
         else:
             line += f"; {closed} of {known} answers cut off by the token budget ({_pct(closed, known)})"
     return line
