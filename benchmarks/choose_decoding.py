@@ -14,7 +14,7 @@ report the chosen way alone. Several files (one per training seed, the same epis
 mean over the seeds, which the paired tests against `population_mean` use (nan where no seed matched an object).
 
 Usage:
-    degusta predict --config configs/predict_hf_transcribe_finetuned.yaml --set split=val \\
+    degusta predict --config configs/predict_hf_base_finetuned.yaml --set split=val \\
         --set backend.adapter=RUN/adapter --set out=OUT/val_s0.jsonl            # one per seed
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split val OUT/val_s0.jsonl OUT/val_s1.jsonl
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split test --only votes TEST_s0.jsonl ...

@@ -41,7 +41,7 @@ def test_shipped_pretrain_config_loads_and_is_checked():
         load_config(PretrainConfig, CONFIG, ["model.vision_channels=[8,8]"])
     with pytest.raises(DegustaError, match="data.mix"):
         load_config(PretrainConfig, CONFIG, ["data.mix.lists=0", "data.mix.describe=0", "data.mix.gomo=0",
-                                             "data.mix.locate=0"])
+                                             "data.mix.locate=0", "data.mix.transcribe=0"])
 
 
 def test_images_too_coarse_for_the_grid_are_refused(tmp_path):
@@ -232,7 +232,7 @@ def test_the_recipe_command_rebuilds_the_config_it_describes():
     from degusta_learn.finetune.pretrain.export import COMMAND, recipe_command
 
     assert recipe_command(load_config(PretrainConfig, CONFIG)) == COMMAND
-    overrides = ["data.mix.transcribe=0.25", "model.vision_channels=[16,32,64,128]", "dataset=my data",
+    overrides = ["data.mix.transcribe=0.0", "model.vision_channels=[16,32,64,128]", "dataset=my data",
                  "trainer.max_steps=100", "trainer.run_name=elsewhere", "export=runs/it's (v2) & $HOME"]
     for last in ([], ["export='on'"]):
         cfg = load_config(PretrainConfig, CONFIG, overrides + last)
