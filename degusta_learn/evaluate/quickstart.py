@@ -9,7 +9,8 @@ Steps (each prints what it does; a re-run reuses what an interrupted run finishe
   2. pick the episodes: 20 test participants, one target trial each, at context 0, 2 and 4 (60);
   3. train the learned slot model (configs/learned_cpu.yaml, about 2 minutes);
   4. LoRA-fine-tune the shipped tiny base VLM (checkpoints/tiny_vlm_base, pretrained here on perception only;
-     configs/finetune_tiny_base_cpu.yaml: one epoch, 87 steps, ~4 minutes) on the train participants;
+     configs/finetune_tiny_base_cpu.yaml cut to QUICK_FINETUNE: half an epoch, ~3 minutes) on the train
+     participants;
      with --small, or where the base is absent (an installed wheel), a random-weight tiny VLM
      (configs/finetune_tiny_cpu.yaml): the pipeline, not a result;
   5. compare heuristic baselines, the oracle, the learned model, and that VLM zero-shot and fine-tuned
@@ -113,7 +114,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
         model, prefix, row = base, "base", "tiny_base"
         finetune = _config("finetune_tiny_base_cpu", cfg_dir,
                            [f"dataset={data_dir}", f"model.name={base}", f"trainer.run_dir={ckpt}",
-                            "trainer.run_name=finetune_tiny_base"], "degusta train")  # the config as it is
+                            "trainer.run_name=finetune_tiny_base"] + QUICK_FINETUNE, "degusta train")
     else:
         why = "--small" if small else f"no shipped base at {BASE_DIR}"
         step(f"4/5 fine-tuning a RANDOM-weight tiny VLM with LoRA ({why}: the pipeline, not a result) "
@@ -125,9 +126,10 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
     ft_dir = run_train(finetune, [])
     for name, adapter in ((f"{row}_zeroshot", None), (f"{row}_finetuned", ft_dir / "best_adapter")):
         cfg_name = f"predict_hf_{prefix}_" + ("zeroshot" if adapter is None else "finetuned")
+        quick = QUICK_FINETUNED_PREDICT if adapter is not None and base is not None else []
         path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={model}",
                                            f"backend.adapter={adapter if adapter else 'null'}",
-                                           f"out={runs / name / 'predictions.jsonl'}"], "degusta predict")
+                                           f"out={runs / name / 'predictions.jsonl'}"] + quick, "degusta predict")
         entries.append(MethodEntry(name=name, config=str(path)))
 
     if with_api or os.environ.get("OPENAI_API_KEY"):
@@ -149,6 +151,16 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
 QUICK_PARTICIPANTS = 20
 QUICK_LEARNED: list[str] = []  # the shipped CPU config as it is (3 epochs, ~2 minutes)
 SMALL_LEARNED = ["trainer.max_epochs=1", "data.repeats=1"]
+QUICK_FINETUNE = ["trainer.max_steps=45", "trainer.val_check_interval=45", "data.contexts=[0,2,4]",
+                  "data.group_by_length=true", "data.val_episodes=8"]
+"""Half an epoch (the config's is 87 steps, ~10 minutes on a 2-core EPYC) on the contexts the quickstart scores (the
+config trains on context 4 alone, what the test split is scored on; at context 0 it had never seen a prompt without
+contexts), in batches of similar length (the three contexts mixed pad a random batch most: 195 s instead of 283 s),
+validated once at its end on 8 episodes (the best_adapter the predict config loads). benchmarks/RESULTS.md, "Main
+job", has what each choice measured."""
+QUICK_FINETUNED_PREDICT = ["backend.report_unconstrained=false"]
+"""The fine-tuned row's answers as the shipped predict config decodes them (greedy + votes of five samples), without
+the free answers behind the free parse rate (~30% of its decoding time; the report shows none for that row)."""
 SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4"]
 
 
