@@ -216,10 +216,11 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
     return out
 
 
-SHARED_PASS_MODELS = ("fast_vlm", "idefics3", "smolvlm")
-"""Model types whose n answers to one prompt share one pass over the prompt (`shared_prompt_pass`): their positions
-are plain 1-D counts. Others (e.g. Qwen2-VL's 3-D multimodal RoPE, set up in its own first generation step) repeat
-the prompt n times as `generate`'s `num_return_sequences` does."""
+SHARED_PASS_MODELS = ("fast_vlm", "idefics3")
+"""Model types whose n answers to one prompt share one pass over the prompt (`shared_prompt_pass`), checked to give
+the same answers (tests/test_shared_prompt_pass.py; SmolVLM-256M is an Idefics3): their positions are plain 1-D
+counts. Others (e.g. Qwen2-VL, whose 3-D multimodal RoPE is set up in its own first generation step) go through
+`generate`'s `num_return_sequences`, which runs the decoder over the prompt n times."""
 
 
 def shares_prompt_pass(model) -> bool:
@@ -228,15 +229,15 @@ def shares_prompt_pass(model) -> bool:
 
 
 def shared_prompt_pass(model, inputs: dict, k: int) -> dict:
-    """`generate` inputs for k answers per prompt row that run the prompt (images included) through the model once.
+    """`generate` inputs for k answers per prompt row that run the decoder over the prompt once.
 
     `generate` with `num_return_sequences=k` copies every prompt k times before its first step (the images are
     encoded once), so the decoder's pass over a prompt of ~1,500 tokens runs k times for answers that differ only
-    from their first new token on. Here the prompt, all but its last token, runs once; its key/value cache is repeated k times per row
-    (`Cache.batch_repeat_interleave`, the order `num_return_sequences` gives) and `generate` continues from it, its
-    first step being the prompt's last token. Positions are those `generate` gives a left-padded prompt (the
-    attention mask's running count). The logits match the plain path's up to floating-point order
-    (tests/test_vlm_generate.py compares the answers).
+    from their first new token on. Here the prompt, all but its last token, runs once; its key/value cache is
+    repeated k times per row (`Cache.batch_repeat_interleave`, the order `num_return_sequences` gives) and
+    `generate` continues from it, its first step being the prompt's last token. Positions are those `generate`
+    gives a left-padded prompt (the attention mask's running count). The answers are those of the plain path
+    (tests/test_shared_prompt_pass.py compares them, free and constrained, one prompt and a left-padded batch).
 
     Returns:
         input_ids and attention_mask repeated k times per row, and `cache` (no pixel values: the cache holds them).
