@@ -199,9 +199,8 @@ class HFBackend(Backend):
         with self._lock:
             return generate_answers(self.vlm, self.processor, prompt, n=n, temperature=temperature,
                                     max_new_tokens=max_tokens, constrained=self.constrained, grammar=grammar,
-                                    seed=seed, free_pass=self.report_unconstrained,  # the free answer wherever
-                                    # the grammar changed one
-                                    on_repeat=self.on_repeat)
+                                    seed=seed, on_repeat=self.on_repeat,
+                                    free_pass=self.report_unconstrained)  # free answers where the grammar changed one
 
 
 @functools.lru_cache(maxsize=16)
