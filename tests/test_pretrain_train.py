@@ -415,3 +415,25 @@ def test_after_a_vision_stage_the_pull_trains_the_projector_not_the_tower(tower_
     tower = [p.grad for p in model.model.vision_tower.parameters()]
     assert all(g is not None and g.abs().sum() > 0 for g in (p.grad for p in projector_of(model).parameters()))
     assert all(g is None or g.abs().sum() == 0 for g in tower) == (tower_steps > 0)
+
+
+def test_channels_last_is_the_same_tower_in_a_faster_layout_and_exports_the_usual_one():
+    from degusta_learn.finetune.pretrain.train import prepare_model
+
+    cfg = load_config(PretrainConfig, CONFIG, TINY)
+    assert cfg.channels_last  # the shipped recipe trains in it
+    model, _ = build_base(cfg.model, seed=0)
+    convs = [p for p in model.model.vision_tower.parameters() if p.dim() == 4]
+    image = torch.rand(2, 3, cfg.model.image_size, cfg.model.image_size)
+    with torch.no_grad():
+        before = model.model.get_image_features(pixel_values=image)
+        prepare_model(model, cfg)
+        assert all(p.is_contiguous(memory_format=torch.channels_last) for p in convs)
+        assert any(not p.is_contiguous() for p in convs)  # (1 x 1 kernels are both)
+        after = model.model.get_image_features(pixel_values=image)
+    torch.testing.assert_close(after, before, atol=1e-4, rtol=1e-3)  # the same up to rounding
+    prepare_model(model, cfg, export=True)
+    assert all(p.is_contiguous() for p in convs)
+    plain = load_config(PretrainConfig, CONFIG, TINY + ["channels_last=false"])
+    prepare_model(model, plain)  # off: the layout is left alone
+    assert all(p.is_contiguous() for p in convs)

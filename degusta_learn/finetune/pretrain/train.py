@@ -141,6 +141,10 @@ class PretrainConfig:
     """Optimizer and schedule."""
     eval: EvalConfig = field(default_factory=lambda: EvalConfig(report_unconstrained=False, max_new_tokens=240))
     """How validation generates (constrained to the answer grammar by default)."""
+    channels_last: bool = False
+    """Train the vision tower's convolutions in the channels-last memory layout: the same weights and results up to
+    rounding, ~1.25x faster forward and backward on a CPU (benchmarks/bench_pretrain_steps.py). The export is
+    written in the usual layout."""
     export: str = "checkpoints/tiny_vlm_base"
     """Where the trained base is written as a plain Hugging Face model folder (with a model card)."""
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(
@@ -218,6 +222,15 @@ class StepSampler:
         return iter(range(first, first + self.n))
 
 
+def prepare_model(model, cfg: PretrainConfig, export: bool = False) -> None:
+    """The training-only memory layout of the tower (`channels_last`), or with `export` the usual one back."""
+    if cfg.channels_last:
+        import torch
+
+        layout = torch.contiguous_format if export else torch.channels_last
+        model.model.vision_tower.to(memory_format=layout)
+
+
 def needs_oracle(d: PretrainData) -> bool:
     """True when batches carry each cell's oracle token ids (the teacher and the tied readout use them)."""
     return d.teacher_steps > 0 or d.readout_weight > 0
@@ -279,6 +292,7 @@ def run(cfg: PretrainConfig) -> Path:
         run_dir.mkdir(parents=True, exist_ok=True)
         model, processor = load_vlm(str(initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
                                     key="model")
+        prepare_model(model, cfg)
         model.train()
         fmt = chat_format(model, processor)
         collator = Collator(processor, fmt, cfg.data.max_length, model.config.image_token_id)
@@ -312,6 +326,7 @@ def run(cfg: PretrainConfig) -> Path:
             state = torch.load(best, map_location="cpu", weights_only=True)
             module.load_state_dict(state["state_dict"])
             step = int(state.get("global_step", step))
+        prepare_model(module.model, cfg, export=True)
         return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=step,
                            run_steps=module.global_step)
 

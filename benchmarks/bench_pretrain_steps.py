@@ -1,0 +1,158 @@
+"""Seconds per training step of each stage of the base's pretraining recipe, on this machine (opt-in; NOT run in CI).
+
+`degusta train --config configs/pretrain_tiny_vlm_cpu.yaml` runs three stages with different costs: the vision
+stage (tower + projector + dense head on one-scene images), the one-scene curriculum (decoder, frozen tower) and
+the final mix (multi-scene prompts, sheets, written lists). This builds the recipe's model and data exactly as
+`pretrain.train.run` does, runs `--steps` optimizer steps of each stage on that stage's own examples (forward,
+backward, AdamW; the module's `training_step`, so every auxiliary loss is in), and prints the median seconds a
+step, the projected minutes of the whole recipe (steps per stage x median) and, with `--compare KEY=VALUE`, the
+same under another override as a ratio measured in the same run (timings on shared machines are noisy: compare
+ratios, not seconds).
+
+Usage:
+    python benchmarks/bench_pretrain_steps.py --steps 12
+    python benchmarks/bench_pretrain_steps.py --steps 12 --compare model.channels_last=true
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ["HF_HUB_OFFLINE"] = "1"
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG = ROOT / "configs" / "pretrain_tiny_vlm_cpu.yaml"
+
+
+def build(overrides: list[str], run_dir: Path):
+    """(module, dataset, collate, cfg) of the recipe under `overrides`, as `pretrain.train.run` builds them."""
+    from degusta_learn.config import load_config
+    from degusta_learn.finetune.collate import Collator
+    from degusta_learn.finetune.pretrain import train as pt
+    from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
+    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
+    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.vlm.generate import chat_format
+    from degusta_learn.vlm.load import load_vlm
+
+    cfg = load_config(pt.PretrainConfig, str(CONFIG), overrides)
+    d = cfg.data
+    catalog, tables, root = pt.catalog_and_tables(cfg.dataset)
+    grid = Grid(d.grid.rows, d.grid.cols)
+    model, processor = load_vlm(str(pt.initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
+                                key="model")
+    pt.prepare_model(model, cfg)
+    model.train()
+    collator = Collator(processor, chat_format(model, processor), d.max_length, model.config.image_token_id)
+    side = cfg.model.tokens_per_side
+    examples = PerceptionExamples(catalog, tables, grid, cfg.model.image_size, cfg.seed,
+                                  cfg.trainer.max_steps * d.batch_size, d.mix, d.batch_size, root,
+                                  ((d.tower_steps + d.curriculum_steps) * d.batch_size, d.curriculum_mix))
+    labels = DenseLabels(catalog, side)
+    oracle = OracleTokens(catalog, processor.tokenizer, grid, pt.oracle_key(d)) if pt.needs_oracle(d) else None
+    retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
+                                 d.retrieval_list_items) if d.retrieval_weight > 0 else None
+    module = Stepped(model, processor, cfg, catalog, grid, labels.n_labels, side)
+    return module, examples, pt.DenseCollate(collator, labels, oracle, retrieval), cfg
+
+
+def _stepped():
+    from degusta_learn.finetune.pretrain.module import PerceptionModule
+
+    class Stepped(PerceptionModule):
+        """The module with a settable step (no Trainer here) and `log` a no-op."""
+
+        step = 0
+
+        @property
+        def global_step(self) -> int:
+            return self.step
+
+        def log(self, *args, **kwargs) -> None:
+            pass
+
+    return Stepped
+
+
+Stepped = None
+
+
+def time_stage(module, examples, collate, cfg, first_step: int, steps: int) -> list[float]:
+    """Seconds of each of `steps` optimizer steps from step `first_step` on (collation included, as in training)."""
+    import torch
+
+    module.step = first_step
+    module.on_train_batch_start(None, 0)  # freezes the tower after the vision stage, as training does
+    params = [p for p in module.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=1e-4)
+    b = cfg.data.batch_size
+    out = []
+    for k in range(steps + 1):  # the first step warms caches and is not counted
+        t = time.perf_counter()
+        i = (first_step + k) * b
+        batch = collate([examples[j] for j in range(i, i + b)])
+        loss = module.training_step(batch, k)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        if k:
+            out.append(time.perf_counter() - t)
+    return out
+
+
+def measure(overrides: list[str], steps: int) -> dict:
+    global Stepped
+    Stepped = Stepped or _stepped()
+    with tempfile.TemporaryDirectory() as tmp:
+        module, examples, collate, cfg = build(overrides, Path(tmp))
+        d = cfg.data
+        final = cfg.trainer.max_steps - d.tower_steps - d.curriculum_steps
+        stages = {"vision": (0, d.tower_steps), "curriculum": (d.tower_steps, d.curriculum_steps),
+                  "final mix": (d.tower_steps + d.curriculum_steps, final)}
+        result = {}
+        for name, (first, n) in stages.items():
+            if n <= 0:
+                continue
+            secs = statistics.median(time_stage(module, examples, collate, cfg, first, steps))
+            result[name] = (secs, n)
+        return result
+
+
+def report(label: str, result: dict) -> float:
+    total = sum(s * n for s, n in result.values()) / 60
+    parts = ", ".join(f"{k} {n} x {s:.2f} s" for k, (s, n) in result.items())
+    print(f"{label}: {parts}; training steps ~{total:.0f} min (validations and checkpoints not included)")
+    return total
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=int, default=12, help="timed steps a stage (after one warm-up step)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override of the recipe")
+    p.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
+                   help="also time the recipe with these overrides added, and print the ratio")
+    a = p.parse_args(argv)
+    import torch
+
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    base = measure(a.set, a.steps)
+    t0 = report("recipe", base)
+    if a.compare:
+        other = measure(a.set + a.compare, a.steps)
+        t1 = report(" ".join(a.compare), other)
+        for k in base:
+            print(f"  {k}: {base[k][0] / other[k][0]:.2f}x faster with {' '.join(a.compare)}")
+        print(f"  whole recipe: {t0 / t1:.2f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
