@@ -4,14 +4,16 @@
 stage (tower + projector + dense head on one-scene images), the one-scene curriculum (decoder, frozen tower) and
 the final mix (multi-scene prompts, sheets, written lists). This builds the recipe's model and data exactly as
 `pretrain.train.run` does, runs `--steps` optimizer steps of each stage on that stage's own examples (forward,
-backward, AdamW; the module's `training_step`, so every auxiliary loss is in), and prints the median seconds a
-step, the projected minutes of the whole recipe (steps per stage x median) and, with `--compare KEY=VALUE`, the
-same under another override as a ratio measured in the same run (timings on shared machines are noisy: compare
-ratios, not seconds).
+backward, AdamW; the module's `training_step`, so every auxiliary loss is in; the batches rendered beforehand),
+and prints the median seconds a step, the projected minutes of the whole recipe (steps per stage x median) and,
+with `--compare KEY=VALUE`, the same under another override as a ratio measured in the same run (timings on shared
+machines are noisy: compare ratios, not seconds). The projection leaves out rendering (~0.09 s a vision-stage step), validations,
+checkpoints and Lightning's loop, and a stage's batches differ in length (the final mix's most): the recipe's own
+log is the measure of its time (benchmarks/RESULTS.md, "The recipe's time").
 
 Usage:
-    python benchmarks/bench_pretrain_steps.py --steps 12
-    python benchmarks/bench_pretrain_steps.py --steps 12 --compare model.channels_last=true
+    python benchmarks/bench_pretrain_steps.py --steps 30 --set channels_last=false --compare channels_last=true
+    python benchmarks/bench_pretrain_steps.py --steps 30 --compare causal_kernel=true
 """
 
 from __future__ import annotations
@@ -25,8 +27,6 @@ import time
 from pathlib import Path
 
 os.environ["HF_HUB_OFFLINE"] = "1"
-ROOT = Path(__file__).resolve().parent.parent
-CONFIG = ROOT / "configs" / "pretrain_tiny_vlm_cpu.yaml"
 
 
 def build(overrides: list[str], run_dir: Path):
@@ -34,15 +34,16 @@ def build(overrides: list[str], run_dir: Path):
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.pretrain import train as pt
+    from degusta_learn.finetune.pretrain.export import RECIPE
     from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
-    from degusta_learn.finetune.pretrain.module import PerceptionModule
     from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
     from degusta_learn.render.grid import Grid
     from degusta_learn.vlm.generate import chat_format
+    from degusta_learn.shipped import SHIPPED_DIR
     from degusta_learn.vlm.load import load_vlm
 
-    cfg = load_config(pt.PretrainConfig, str(CONFIG), overrides)
+    cfg = load_config(pt.PretrainConfig, str(SHIPPED_DIR / RECIPE), overrides)
     d = cfg.data
     catalog, tables, root = pt.catalog_and_tables(cfg.dataset)
     grid = Grid(d.grid.rows, d.grid.cols)
@@ -59,16 +60,15 @@ def build(overrides: list[str], run_dir: Path):
     oracle = OracleTokens(catalog, processor.tokenizer, grid, pt.oracle_key(d)) if pt.needs_oracle(d) else None
     retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
                                  d.retrieval_list_items) if d.retrieval_weight > 0 else None
-    module = Stepped(model, processor, cfg, catalog, grid, labels.n_labels, side)
+    module = stepped_module()(model, processor, cfg, catalog, grid, labels.n_labels, side)
     return module, examples, pt.DenseCollate(collator, labels, oracle, retrieval), cfg
 
 
-def _stepped():
+def stepped_module():
+    """PerceptionModule with a settable step (there is no Trainer here) and `log` a no-op."""
     from degusta_learn.finetune.pretrain.module import PerceptionModule
 
     class Stepped(PerceptionModule):
-        """The module with a settable step (no Trainer here) and `log` a no-op."""
-
         step = 0
 
         @property
@@ -81,11 +81,10 @@ def _stepped():
     return Stepped
 
 
-Stepped = None
-
-
-def time_stage(module, examples, collate, cfg, first_step: int, steps: int) -> list[float]:
-    """Seconds of each of `steps` optimizer steps from step `first_step` on (collation included, as in training)."""
+def time_stage(module, examples, collate, cfg, first_step: int, steps: int, warmup: int = 2) -> list[float]:
+    """Seconds of each of `steps` optimizer steps (forward, backward, clipping, AdamW) from step `first_step` on,
+    after `warmup` untimed ones. The batches are rendered and collated before the clock starts: rendering fills
+    caches that a second measurement would find warm, and in training it is the same for every model setting."""
     import torch
 
     module.step = first_step
@@ -93,24 +92,22 @@ def time_stage(module, examples, collate, cfg, first_step: int, steps: int) -> l
     params = [p for p in module.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=1e-4)
     b = cfg.data.batch_size
+    starts = [(first_step + k) * b for k in range(warmup + steps)]
+    batches = [collate([examples[j] for j in range(i, i + b)]) for i in starts]
     out = []
-    for k in range(steps + 1):  # the first step warms caches and is not counted
+    for k, batch in enumerate(batches):
         t = time.perf_counter()
-        i = (first_step + k) * b
-        batch = collate([examples[j] for j in range(i, i + b)])
         loss = module.training_step(batch, k)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         opt.zero_grad(set_to_none=True)
-        if k:
+        if k >= warmup:
             out.append(time.perf_counter() - t)
     return out
 
 
 def measure(overrides: list[str], steps: int) -> dict:
-    global Stepped
-    Stepped = Stepped or _stepped()
     with tempfile.TemporaryDirectory() as tmp:
         module, examples, collate, cfg = build(overrides, Path(tmp))
         d = cfg.data
@@ -135,7 +132,7 @@ def report(label: str, result: dict) -> float:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=12, help="timed steps a stage (after one warm-up step)")
+    p.add_argument("--steps", type=int, default=30, help="timed steps a stage (after one warm-up step)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override of the recipe")
     p.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
                    help="also time the recipe with these overrides added, and print the ratio")

@@ -65,3 +65,17 @@ def test_the_card_reports_the_transcribe_score_when_the_benchmark_measured_it(tm
     (tmp_path / PERCEPTION).write_text(json.dumps(scores))
     card = write_card(tmp_path).read_text()
     assert "100 *transcribe* questions): object F1 0.34, the written length 0.12 of the time" in card
+
+
+def test_each_shipped_bases_card_gives_the_command_that_rebuilds_it_from_todays_recipe():
+    """The shipped config changes (channels_last, fewer validations); a base built before must then name the
+    `--set` values that repeat its own run, as `recipe_command` derives them from the folder's resolved config."""
+    from degusta_learn.config import load_config
+    from degusta_learn.finetune.pretrain.export import recipe_command
+    from degusta_learn.finetune.pretrain.train import PretrainConfig
+
+    for folder in sorted(BASE_DIR.parent.glob("tiny_vlm_base*")):
+        resolved = load_config(PretrainConfig, folder / "pretrain_config.yaml")
+        command = json.loads((folder / "degusta_base.json").read_text())["training"]["command"]
+        assert command == recipe_command(resolved), folder
+        assert f"`{command}`" in (folder / "README.md").read_text(), folder

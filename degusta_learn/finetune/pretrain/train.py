@@ -1,6 +1,6 @@
 """`degusta train` with `kind: pretrain`: teach a tiny base VLM to *see* lifted images, from random weights.
 
-Usage (the shipped base: about 87 minutes on a 2-core CPU, resumable by running the same command again):
+Usage (the shipped recipe: 96 minutes on a 2-core EPYC, resumable by running the same command again):
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml --set trainer.max_steps=40 --set data.tower_steps=20 \
         --set data.steps_per_epoch=20 --set trainer.run_name=pretrain_smoke --set export=runs/base_smoke   # smoke
@@ -142,9 +142,14 @@ class PretrainConfig:
     eval: EvalConfig = field(default_factory=lambda: EvalConfig(report_unconstrained=False, max_new_tokens=240))
     """How validation generates (constrained to the answer grammar by default)."""
     channels_last: bool = False
-    """Train the vision tower's convolutions in the channels-last memory layout: the same weights and results up to
-    rounding, ~1.25x faster forward and backward on a CPU (benchmarks/bench_pretrain_steps.py). The export is
-    written in the usual layout."""
+    """Train the vision tower's convolutions in the channels-last memory layout: the same model up to rounding, its
+    forward and backward faster on a CPU (the vision stage 0.51 s a step where 0.65 without it; benchmarks/RESULTS.md,
+    "The recipe's time"). The export is written in the usual layout."""
+    causal_kernel: bool = False
+    """Train the decoder without the padding mask (`loss.without_trailing_padding_mask`: the collator pads on the
+    right, and causal attention keeps the pads from every position the losses read), so its attention runs the plain
+    causal kernel: the same model up to rounding, faster on a CPU (benchmarks/bench_pretrain_steps.py --compare
+    causal_kernel=true). Validation keeps the mask."""
     export: str = "checkpoints/tiny_vlm_base"
     """Where the trained base is written as a plain Hugging Face model folder (with a model card)."""
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(
