@@ -30,38 +30,16 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 
 
 def build(overrides: list[str], run_dir: Path):
-    """(module, dataset, collate, cfg) of the recipe under `overrides`, as `pretrain.train.run` builds them."""
+    """(module, training examples, their collator, cfg) of the recipe under `overrides`, built by `build_recipe` as
+    `pretrain.train.run` builds them."""
     from degusta_learn.config import load_config
-    from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.pretrain import train as pt
     from degusta_learn.finetune.pretrain.export import RECIPE
-    from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
-    from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
-    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
-    from degusta_learn.render.grid import Grid
-    from degusta_learn.vlm.generate import chat_format
+    from degusta_learn.finetune.pretrain.train import PretrainConfig, build_recipe
     from degusta_learn.shipped import SHIPPED_DIR
-    from degusta_learn.vlm.load import load_vlm
 
-    cfg = load_config(pt.PretrainConfig, str(SHIPPED_DIR / RECIPE), overrides)
-    d = cfg.data
-    catalog, tables, root = pt.catalog_and_tables(cfg.dataset)
-    grid = Grid(d.grid.rows, d.grid.cols)
-    model, processor = load_vlm(str(pt.initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
-                                key="model")
-    pt.prepare_model(model, cfg)
-    model.train()
-    collator = Collator(processor, chat_format(model, processor), d.max_length, model.config.image_token_id)
-    side = cfg.model.tokens_per_side
-    examples = PerceptionExamples(catalog, tables, grid, cfg.model.image_size, cfg.seed,
-                                  cfg.trainer.max_steps * d.batch_size, d.mix, d.batch_size, root,
-                                  ((d.tower_steps + d.curriculum_steps) * d.batch_size, d.curriculum_mix))
-    labels = DenseLabels(catalog, side)
-    oracle = OracleTokens(catalog, processor.tokenizer, grid, pt.oracle_key(d)) if pt.needs_oracle(d) else None
-    retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
-                                 d.retrieval_list_items) if d.retrieval_weight > 0 else None
-    module = stepped_module()(model, processor, cfg, catalog, grid, labels.n_labels, side)
-    return module, examples, pt.DenseCollate(collator, labels, oracle, retrieval), cfg
+    cfg = load_config(PretrainConfig, str(SHIPPED_DIR / RECIPE), overrides)
+    parts = build_recipe(cfg, run_dir, module_cls=stepped_module())
+    return parts.module, parts.train, parts.collate, cfg
 
 
 def stepped_module():
@@ -126,13 +104,13 @@ def measure(overrides: list[str], steps: int) -> dict:
 def report(label: str, result: dict) -> float:
     total = sum(s * n for s, n in result.values()) / 60
     parts = ", ".join(f"{k} {n} x {s:.2f} s" for k, (s, n) in result.items())
-    print(f"{label}: {parts}; training steps ~{total:.0f} min (validations and checkpoints not included)")
+    print(f"{label}: {parts}; training steps ~{total:.0f} min (rendering, validations and checkpoints not included)")
     return total
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=30, help="timed steps a stage (after one warm-up step)")
+    p.add_argument("--steps", type=int, default=30, help="timed steps a stage (after two warm-up steps)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override of the recipe")
     p.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
                    help="also time the recipe with these overrides added, and print the ratio")

@@ -274,55 +274,78 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
     return init
 
 
+@dataclass
+class RecipeParts:
+    """What `run` trains: the model and its processor, the module, the example streams and their collators."""
+
+    processor: object
+    module: object
+    train: object
+    val: object
+    collate: object
+    """The training batches' collator (with the dense, oracle and retrieval targets the losses need)."""
+    collator: object
+    """The plain collator (validation batches)."""
+
+
+def build_recipe(cfg: PretrainConfig, run_dir: Path, module_cls=None) -> RecipeParts:
+    """The initial model (`initial_model`, in the training layout), the PerceptionModule (or `module_cls`) and the
+    example streams and collators of `cfg`, as `run` trains them (benchmarks/bench_pretrain_steps.py times them)."""
+    from degusta_learn.finetune.collate import Collator
+    from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
+    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
+    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.vlm.generate import chat_format
+    from degusta_learn.vlm.load import load_vlm
+
+    catalog, tables, root = catalog_and_tables(cfg.dataset)
+    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+    model, processor = load_vlm(str(initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
+                                key="model")
+    prepare_model(model, cfg)
+    model.train()
+    collator = Collator(processor, chat_format(model, processor), cfg.data.max_length, model.config.image_token_id)
+    d = cfg.data
+    steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
+    side = cfg.model.tokens_per_side
+    make = lambda seed, n, block, early=None: PerceptionExamples(  # noqa: E731
+        catalog, tables, grid, cfg.model.image_size, seed, n, d.mix, block, root, early)
+    # a curriculum's first steps ask other questions; validation always asks the final mix's
+    batches = steps * cfg.trainer.accumulate_grad_batches
+    train = make(cfg.seed, (batches + d.steps_per_epoch) * d.batch_size, d.batch_size,  # the vision stage's
+                 ((d.tower_steps + d.curriculum_steps) * cfg.trainer.accumulate_grad_batches * d.batch_size,
+                  d.curriculum_mix))  # images are one-scene
+    val = make(cfg.seed + 1_000_003, d.val_examples, 1)
+    labels = DenseLabels(catalog, side)
+    module = (module_cls or PerceptionModule)(model, processor, cfg, catalog, grid, labels.n_labels, side)
+    oracle = OracleTokens(catalog, processor.tokenizer, grid, oracle_key(d)) if needs_oracle(d) else None
+    retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
+                                 d.retrieval_list_items) if d.retrieval_weight > 0 else None
+    dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
+    return RecipeParts(processor, module, train, val,
+                       DenseCollate(collator, labels, oracle, retrieval) if dense else collator, collator)
+
+
 def run(cfg: PretrainConfig) -> Path:
     """Pretrain per `cfg` (resuming `<run>/last.ckpt` if present); returns the exported model folder."""
     import torch
 
-    from degusta_learn.finetune.collate import Collator
-    from degusta_learn.vlm.generate import chat_format
-    from degusta_learn.vlm.load import load_vlm
     from degusta_learn.finetune.module import FinetuneData
     from degusta_learn.finetune.pretrain.export import export_base
-    from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
-    from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
-    from degusta_learn.finetune.pretrain.module import PerceptionModule, monitor_keys
-    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
-    from degusta_learn.render.grid import Grid
+    from degusta_learn.finetune.pretrain.module import monitor_keys
     from degusta_learn.trainer import BEST, fit, training_run
 
     with training_run(cfg.trainer, monitor_keys(cfg)):  # checks trainer values, seeds before the model exists
-        catalog, tables, root = catalog_and_tables(cfg.dataset)
-        grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
         run_dir = cfg.trainer.path
         run_dir.mkdir(parents=True, exist_ok=True)
-        model, processor = load_vlm(str(initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
-                                    key="model")
-        prepare_model(model, cfg)
-        model.train()
-        fmt = chat_format(model, processor)
-        collator = Collator(processor, fmt, cfg.data.max_length, model.config.image_token_id)
-        d = cfg.data
-        steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
-        side = cfg.model.tokens_per_side
-        make = lambda seed, n, block, early=None: PerceptionExamples(  # noqa: E731
-            catalog, tables, grid, cfg.model.image_size, seed, n, d.mix, block, root, early)
-        # a curriculum's first steps ask other questions; validation always asks the final mix's
-        batches = steps * cfg.trainer.accumulate_grad_batches
-        train = make(cfg.seed, (batches + d.steps_per_epoch) * d.batch_size, d.batch_size,  # the vision stage's
-                     ((d.tower_steps + d.curriculum_steps) * cfg.trainer.accumulate_grad_batches * d.batch_size,
-                      d.curriculum_mix))  # images are one-scene
-        val = make(cfg.seed + 1_000_003, d.val_examples, 1)
-        labels = DenseLabels(catalog, side)
-        module = PerceptionModule(model, processor, cfg, catalog, grid, labels.n_labels, side)
-        oracle = OracleTokens(catalog, processor.tokenizer, grid, oracle_key(d)) if needs_oracle(d) else None
-        retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
-                                     d.retrieval_list_items) if d.retrieval_weight > 0 else None
-        dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
-        data = FinetuneData(train, val, DenseCollate(collator, labels, oracle, retrieval) if dense else collator,
-                            d.batch_size, d.num_workers, sampler=StepSampler(
-                                d.steps_per_epoch * d.batch_size, d.batch_size,
-                                lambda: module.global_step * cfg.trainer.accumulate_grad_batches),
-                            val_collator=collator)
+        parts = build_recipe(cfg, run_dir)
+        module, processor, d = parts.module, parts.processor, cfg.data
+        sampler = StepSampler(d.steps_per_epoch * d.batch_size, d.batch_size,
+                              lambda: module.global_step * cfg.trainer.accumulate_grad_batches)
+        data = FinetuneData(parts.train, parts.val, parts.collate, d.batch_size, d.num_workers, sampler=sampler,
+                            val_collator=parts.collator)
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
         if module.trainer is not None and not module.trainer.is_global_zero:
             return Path(cfg.export)
