@@ -7,13 +7,15 @@ the final mix (multi-scene prompts, sheets, written lists). This builds the reci
 backward, AdamW; the module's `training_step`, so every auxiliary loss is in; the batches rendered beforehand),
 and prints the median seconds a step, the projected minutes of the whole recipe (steps per stage x median) and,
 with `--compare KEY=VALUE`, the same under another override as a ratio measured in the same run (timings on shared
-machines are noisy: compare ratios, not seconds). The projection leaves out rendering (~0.09 s a vision-stage step), validations,
-checkpoints and Lightning's loop, and a stage's batches differ in length (the final mix's most): the recipe's own
-log is the measure of its time (benchmarks/RESULTS.md, "The recipe's time").
+machines are noisy: compare ratios, not seconds), timed in the order A, B, B, A and each the mean of its two rounds
+(the configuration timed first in a process runs its vision stage 1.3-1.5x slower, whichever it is). The projection
+leaves out rendering and collating (the stages' own data loading, which `data.num_workers` moves off the training
+process), validations, checkpoints and Lightning's loop, and a stage's batches differ in length (the final mix's
+most): the recipe's own log is the measure of its time (benchmarks/RESULTS.md, "The recipe's time").
 
 Usage:
+    python benchmarks/bench_pretrain_steps.py --steps 30
     python benchmarks/bench_pretrain_steps.py --steps 30 --set channels_last=false --compare channels_last=true
-    python benchmarks/bench_pretrain_steps.py --steps 30 --compare causal_kernel=true
 """
 
 from __future__ import annotations
@@ -101,6 +103,10 @@ def measure(overrides: list[str], steps: int) -> dict:
         return result
 
 
+def mean_of(r1: dict, r2: dict) -> dict:
+    return {k: ((r1[k][0] + r2[k][0]) / 2, n) for k, (_, n) in r1.items()}
+
+
 def report(label: str, result: dict) -> float:
     total = sum(s * n for s, n in result.values()) / 60
     parts = ", ".join(f"{k} {n} x {s:.2f} s" for k, (s, n) in result.items())
@@ -118,14 +124,19 @@ def main(argv=None) -> int:
     import torch
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
-    base = measure(a.set, a.steps)
-    t0 = report("recipe", base)
-    if a.compare:
-        other = measure(a.set + a.compare, a.steps)
-        t1 = report(" ".join(a.compare), other)
-        for k in base:
-            print(f"  {k}: {base[k][0] / other[k][0]:.2f}x faster with {' '.join(a.compare)}")
-        print(f"  whole recipe: {t0 / t1:.2f}x")
+    if not a.compare:
+        report("recipe", measure(a.set, a.steps))
+        return 0
+    # A, B, B, A: whichever configuration runs first in a process finds its caches and thread pool cold (the first
+    # vision stage timed ran 1.26-1.52x slower whichever it was); each is reported as the mean of its two rounds
+    a1 = measure(a.set, a.steps)
+    b1 = measure(a.set + a.compare, a.steps)
+    b2 = measure(a.set + a.compare, a.steps)
+    base, other = mean_of(a1, measure(a.set, a.steps)), mean_of(b1, b2)
+    t0, t1 = report("recipe", base), report(" ".join(a.compare), other)
+    for k in base:
+        print(f"  {k}: {base[k][0] / other[k][0]:.2f}x faster with {' '.join(a.compare)}")
+    print(f"  whole recipe: {t0 / t1:.2f}x")
     return 0
 
 

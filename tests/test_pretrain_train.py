@@ -286,7 +286,7 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
     from safetensors.torch import load_file
 
     steps = ["data.tower_steps=2", "data.teacher_hold=1", "data.teacher_steps=2", "data.curriculum_steps=2",
-             "data.steps_per_epoch=1", "data.readout_weight=1", "causal_kernel=true"]  # validations at steps 1 (in the vision stage), 2, ...
+             "data.steps_per_epoch=1", "data.readout_weight=1"]  # validations at steps 1 (in the vision stage), 2, ...
     run_train(CONFIG, _overrides(tmp_path, 2) + steps)
     run = tmp_path / "runs" / "p"
     init = load_file(run / "init" / "model.safetensors")
@@ -437,25 +437,3 @@ def test_channels_last_is_the_same_tower_in_a_faster_layout_and_exports_the_usua
     plain = load_config(PretrainConfig, CONFIG, TINY + ["channels_last=false"])
     prepare_model(model, plain)  # off: the layout is left alone
     assert all(p.is_contiguous() for p in convs)
-
-
-def test_the_causal_kernel_gives_the_loss_the_padding_mask_gives():
-    from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.loss import lm_loss, without_trailing_padding_mask
-    from degusta_learn.vlm.generate import chat_format
-
-    model, processor = _tiny_base()
-    model.eval()
-    examples = PerceptionExamples(default_catalog(), {t.id: t for t in default_tables()}, Grid(8, 8), 256, 0, 4,
-                                  TaskMix(lists=1.0, describe=1.0, gomo=0.0, locate=1.0), 1)
-    batch = Collator(processor, chat_format(model, processor), 2048, model.config.image_token_id)(list(examples))
-    mask = batch["attention_mask"]
-    assert (mask == 0).any() and bool((mask[:, 1:] <= mask[:, :-1]).all())  # padded, on the right
-    fast = without_trailing_padding_mask(batch)
-    assert "attention_mask" not in fast and "attention_mask" in batch
-    with torch.no_grad():
-        torch.testing.assert_close(lm_loss(model, fast)[0], lm_loss(model, batch)[0], atol=1e-5, rtol=1e-5)
-        # without the mask the pads would be read where they are not trailing: such a batch keeps its mask
-        left = dict(batch, attention_mask=mask.flip(1))
-        assert without_trailing_padding_mask(left) is left
-        assert not torch.allclose(lm_loss(model, left)[0], lm_loss(model, batch)[0])  # the mask is read at all

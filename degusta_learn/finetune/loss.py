@@ -17,18 +17,6 @@ import torch.nn.functional as F
 from degusta_learn.finetune.collate import IGNORE
 
 
-def without_trailing_padding_mask(batch: dict) -> dict:
-    """`batch` without its attention mask when every row's padding is at its end (the collator pads on the right);
-    else `batch` itself. Under the causal mask no token attends to a later position, so trailing pads are invisible
-    to every real position, the only ones a loss reads: the decoder then runs its plain causal attention kernel
-    instead of a masked one, the same numbers up to rounding, faster on a CPU (benchmarks/RESULTS.md, "The recipe's
-    time"). The pads' own outputs change, and nothing reads them."""
-    mask = batch.get("attention_mask")
-    if mask is None or not bool((mask[:, 1:] <= mask[:, :-1]).all()):
-        return batch
-    return {k: v for k, v in batch.items() if k != "attention_mask"}
-
-
 def unwrap(model):
     """The transformers model inside a PeftModel (or the model itself)."""
     get_base = getattr(model, "get_base_model", None)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 
-from degusta_learn.finetune.loss import lm_loss, unwrap, without_trailing_padding_mask
+from degusta_learn.finetune.loss import lm_loss, unwrap
 from degusta_learn.finetune.module import FinetuneModule, freeze_batch_norms
 from degusta_learn.finetune.pretrain.retrieval import KEYS as RETRIEVAL_KEYS
 
@@ -176,7 +176,7 @@ class PerceptionModule(FinetuneModule):
         if self.teacher is not None:
             self.teacher.ids, self.teacher.keep = oracle_ids, keep
         self._tokens = self._features = None
-        loss, n = lm_loss(self.model, without_trailing_padding_mask(batch) if self.cfg.causal_kernel else batch)
+        loss, n = lm_loss(self.model, batch)
         bs = batch["input_ids"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         if self.teacher is not None:

@@ -145,11 +145,6 @@ class PretrainConfig:
     """Train the vision tower's convolutions in the channels-last memory layout: the same model up to rounding, its
     forward and backward faster on a CPU (the vision stage 0.51 s a step where 0.65 without it; benchmarks/RESULTS.md,
     "The recipe's time"). The export is written in the usual layout."""
-    causal_kernel: bool = False
-    """Train the decoder without the padding mask (`loss.without_trailing_padding_mask`: the collator pads on the
-    right, and causal attention keeps the pads from every position the losses read), so its attention runs the plain
-    causal kernel: the same model up to rounding, faster on a CPU (benchmarks/bench_pretrain_steps.py --compare
-    causal_kernel=true). Validation keeps the mask."""
     export: str = "checkpoints/tiny_vlm_base"
     """Where the trained base is written as a plain Hugging Face model folder (with a model card)."""
     trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(
