@@ -676,6 +676,26 @@ def _resumed_log_step():
     return ResumedLogStep()
 
 
+def _validation_at_max_steps():
+    """A callback that makes the step that reaches `trainer.max_steps` a validation step.
+
+    Lightning validates at an epoch's end (or every `val_check_interval` batches) and stops at `max_steps` wherever
+    it falls: a run whose last epoch is cut short ended without validating its last weights (the pretraining
+    recipe's 5,650 steps at 300 an epoch: last validation at step 5,399, so neither its learning curve nor its model
+    card showed the weights it exported, and a `trainer.monitor` never saw them). Asking the loop to stop at that
+    step makes Lightning validate there (`Trainer.should_stop` does); a run that ends on a validation step
+    validates once, as before.
+    """
+    from lightning.pytorch.callbacks import Callback
+
+    class ValidationAtMaxSteps(Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+            if 0 < trainer.max_steps <= trainer.global_step:
+                trainer.should_stop = True
+
+    return ValidationAtMaxSteps()
+
+
 def _monitor_guard(monitor: str):
     """A callback that fails fast, with a one-line error, when a validation did not log `monitor`.
 
@@ -761,7 +781,7 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
                              auto_insert_metric_name=False, save_on_train_epoch_end=False)] if cfg.monitor else []
     ckpts.append(ModelCheckpoint(dirpath=run, filename=LAST[:-5], monitor=None, save_top_k=1, save_last=False,
                                  enable_version_counter=False, auto_insert_metric_name=False))
-    cbs = [*ckpts, *(callbacks or []), _resumed_log_step()]
+    cbs = [*ckpts, *(callbacks or []), _resumed_log_step(), _validation_at_max_steps()]
     if cfg.monitor:
         cbs.append(_monitor_guard(cfg.monitor))  # before EarlyStopping: its one-line error comes first
     if cfg.early_stopping_patience is not None:  # counts validations (checked after each, never at epoch end);

@@ -66,9 +66,18 @@ def test_fit_writes_run_folder_and_resumes(tmp_path):
     assert torch.load(run / "last.ckpt", weights_only=True)["global_step"] == 7
     assert (run / "csv/version_0/metrics.csv").is_file() and (run / "csv/version_1/metrics.csv").is_file()
     # resumed again: the logged steps go on where an uninterrupted run's would be (Lightning's restored logging
-    # step was one ahead per resume: validations after steps 2, 4, 6, 8, 10 logged at 1, 3, 6, 8, 11 before)
+    # step was one ahead per resume: validations after steps 2, 4, 6, 8, 10 logged at 1, 3, 6, 8, 11 before);
+    # the run that stopped at step 7 validated its last weights there too
     fit(Toy(), ToyData(), cfg(tmp_path, max_steps=10), full_config={**full, "trainer": {"max_steps": 10}})
-    assert [r["step"] for r in validation_curve(run, "val/rmsd")] == [1, 3, 5, 7, 9]
+    assert [r["step"] for r in validation_curve(run, "val/rmsd")] == [1, 3, 5, 6, 7, 9]
+
+
+@pytest.mark.parametrize("max_steps, validated_after", [(6, [4, 6]), (8, [4, 8])])
+def test_a_run_validates_the_weights_it_stops_with(tmp_path, max_steps, validated_after):
+    """Epochs of 4 batches, a validation at each epoch's end: a run that stops inside an epoch validates there too
+    (Lightning alone stopped at step 6 without it); one that stops at an epoch's end validates once."""
+    run = fit(Toy(), ToyData(), cfg(tmp_path, max_steps=max_steps, val_check_interval=1.0))
+    assert [r["step"] + 1 for r in validation_curve(run, "val/rmsd")] == validated_after
 
 
 def test_refuses_to_overwrite_or_mix_runs(tmp_path):
