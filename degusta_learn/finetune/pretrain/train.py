@@ -1,6 +1,6 @@
 """`degusta train` with `kind: pretrain`: teach a tiny base VLM to *see* lifted images, from random weights.
 
-Usage (the shipped recipe: 96 minutes on a 2-core EPYC, resumable by running the same command again):
+Usage (the shipped recipe: 81 minutes on a 2-core EPYC, resumable by running the same command again):
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml
     degusta train --config configs/pretrain_tiny_vlm_cpu.yaml --set trainer.max_steps=40 --set data.tower_steps=20 \
         --set data.steps_per_epoch=20 --set trainer.run_name=pretrain_smoke --set export=runs/base_smoke   # smoke
