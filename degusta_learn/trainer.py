@@ -108,7 +108,8 @@ class TrainerConfig:
     log_every_n_steps: int = bounded(10, 1, 1_000_000_000)
     """How often training losses are logged."""
     val_check_interval: int | float = 1.0
-    """Validate every this fraction of an epoch (float) or number of batches (int)."""
+    """Validate every this fraction of an epoch (float) or number of batches (int); the step that reaches
+    `max_steps` validates too, wherever it falls."""
     check_val_every_n_epoch: int = bounded(1, 1, 1_000_000)
     """Validate every this many epochs."""
     monitor: str | None = "val/rmsd"
