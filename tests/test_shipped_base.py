@@ -68,7 +68,7 @@ def test_the_card_reports_the_transcribe_score_when_the_benchmark_measured_it(tm
 
 
 def test_each_shipped_bases_card_gives_the_command_that_rebuilds_it_from_todays_recipe():
-    """The shipped config changes (channels_last, fewer validations); a base built before must then name the
+    """The shipped config changes (channels_last, fewer validations, shorter stages); a base built before must name the
     `--set` values that repeat its own run, as `recipe_command` derives them from the folder's resolved config."""
     from degusta_learn.config import load_config
     from degusta_learn.finetune.pretrain.export import recipe_command

@@ -295,14 +295,14 @@ def build_recipe(cfg: PretrainConfig, run_dir: Path, module_cls=None) -> RecipeP
     from degusta_learn.vlm.generate import chat_format
     from degusta_learn.vlm.load import load_vlm
 
+    d = cfg.data
     catalog, tables, root = catalog_and_tables(cfg.dataset)
-    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
+    grid = Grid(d.grid.rows, d.grid.cols)
     model, processor = load_vlm(str(initial_model(cfg, run_dir, catalog, grid)), device="cpu", dtype="float32",
                                 key="model")
     prepare_model(model, cfg)
     model.train()
-    collator = Collator(processor, chat_format(model, processor), cfg.data.max_length, model.config.image_token_id)
-    d = cfg.data
+    collator = Collator(processor, chat_format(model, processor), d.max_length, model.config.image_token_id)
     steps = cfg.trainer.max_steps if cfg.trainer.max_steps > 0 else d.steps_per_epoch * max(1, cfg.trainer.max_epochs)
     side = cfg.model.tokens_per_side
     make = lambda seed, n, block, early=None: PerceptionExamples(  # noqa: E731
