@@ -181,6 +181,7 @@ def test_teacher_needs_one_token_per_cell():
 def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     from transformers import AutoModelForImageTextToText, AutoProcessor
 
+    from degusta_learn.trainer import effective_precision
     from degusta_learn.vlm.load import load_vlm
 
     seen: list[int] = []  # the training examples drawn, in order (validation uses another seed)
@@ -204,6 +205,9 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     # the card's command rebuilds THIS model: the shipped recipe plus this run's overrides, not the plain command
     assert "--set data.teacher_weight=1" in meta["training"]["command"] in card
     assert f"--set export={out}" in meta["training"]["command"] and "run_name" not in meta["training"]["command"]
+    # the arithmetic this machine ran the config's precision in (bf16-mixed: 32-true without native bfloat16)
+    ran = effective_precision(load_config(PretrainConfig, CONFIG).trainer)
+    assert meta["training"]["precision"] == ran and f"on a CPU in {ran}." in card
     # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head
     model = AutoModelForImageTextToText.from_pretrained(out)
     assert type(model).__name__ == "FastVlmForConditionalGeneration"

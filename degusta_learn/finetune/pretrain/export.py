@@ -68,6 +68,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     from degusta_learn.finetune.export import MODEL_FOLDER
     from degusta_learn.outdir import write_folder
     from degusta_learn.render.grid import Grid
+    from degusta_learn.trainer import effective_precision
     from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.vlm.record import BaseRecord, write_record
 
@@ -87,6 +88,9 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
             prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
             catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
             training={"command": recipe_command(cfg), "steps": steps,
+                      # the arithmetic this machine ran the config's trainer.precision in (bf16-mixed is 32-true
+                      # on a CPU without native bfloat16): builds of one recipe in bf16 and in fp32 differ (point 44)
+                      "precision": effective_precision(cfg.trainer),
                       "run_steps": run_steps if run_steps is not None else steps,
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
@@ -109,6 +113,12 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
 
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+def _where(t: dict) -> str:
+    """Where and in which arithmetic it trained, in the card's words (older records lack the precision)."""
+    precision = t.get("precision")
+    return f"on a CPU in {precision}" if precision else "on a CPU"
 
 
 def _stages(t: dict) -> str:
@@ -197,7 +207,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         + (f"(the best validation of a {t['run_steps']}-step run) " if t.get("run_steps", t["steps"]) != t["steps"]
            else "") +
         f"of {t['batch_size']} examples ({t['examples']} examples, every one a freshly rendered random scene), "
-        f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, {_stages(t)}, on a CPU. "
+        f"AdamW at {t['lr']}, warmup + cosine, seed {t['seed']}, {_stages(t)}, {_where(t)}. "
         f"Catalog and tables: {meta['catalog']}. Task mix: {t['mix']}{_curriculum(t)}.", "",
         "## Perception scores", "",
     ]
