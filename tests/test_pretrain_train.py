@@ -207,7 +207,8 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     assert f"--set export={out}" in meta["training"]["command"] and "run_name" not in meta["training"]["command"]
     # the arithmetic this machine ran the config's precision in (bf16-mixed: 32-true without native bfloat16)
     ran = effective_precision(load_config(PretrainConfig, CONFIG).trainer)
-    assert meta["training"]["precision"] == ran and f"on a CPU in {ran}." in card
+    assert meta["training"]["precision"] == ran and meta["training"]["device"] == "cpu"
+    assert f"on a CPU in {ran}." in card
     # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head
     model = AutoModelForImageTextToText.from_pretrained(out)
     assert type(model).__name__ == "FastVlmForConditionalGeneration"
@@ -441,3 +442,16 @@ def test_channels_last_is_the_same_tower_in_a_faster_layout_and_exports_the_usua
     plain = load_config(PretrainConfig, CONFIG, TINY + ["channels_last=false"])
     prepare_model(model, plain)  # off: the layout is left alone
     assert all(p.is_contiguous() for p in convs)
+
+
+@pytest.mark.parametrize("record, words", [
+    ({}, "on a CPU"),  # a record from before the device and precision were written down
+    ({"device": "cpu", "precision": "32-true"}, "on a CPU in 32-true"),
+    ({"device": "gpu", "precision": "bf16-mixed"}, "on a GPU in bf16-mixed"),
+])
+def test_the_card_says_where_and_in_which_precision_the_base_trained(record, words):
+    from degusta_learn.finetune.pretrain.export import _device, _where
+    from degusta_learn.trainer import TrainerConfig
+
+    assert _where(record) == words
+    assert _device(TrainerConfig(accelerator="gpu")) == "gpu" and _device(TrainerConfig(accelerator="cpu")) == "cpu"

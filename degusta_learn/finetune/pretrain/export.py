@@ -90,7 +90,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
             training={"command": recipe_command(cfg), "steps": steps,
                       # the arithmetic this machine ran the config's trainer.precision in (bf16-mixed is 32-true
                       # on a CPU without native bfloat16): builds of one recipe in bf16 and in fp32 differ (point 44)
-                      "precision": effective_precision(cfg.trainer),
+                      "precision": effective_precision(cfg.trainer), "device": _device(cfg.trainer),
                       "run_steps": run_steps if run_steps is not None else steps,
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
@@ -115,10 +115,20 @@ def _fmt(v) -> str:
     return "-" if v is None else f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
+def _device(trainer) -> str:
+    """"gpu", "cpu", "mps" or "tpu": where a run of `trainer` (a TrainerConfig) trains on this machine."""
+    import torch
+
+    if trainer.accelerator in ("gpu", "cuda") or (trainer.accelerator == "auto" and torch.cuda.is_available()):
+        return "gpu"
+    return trainer.accelerator if trainer.accelerator in ("mps", "tpu") else "cpu"
+
+
 def _where(t: dict) -> str:
-    """Where and in which arithmetic it trained, in the card's words (older records lack the precision)."""
-    precision = t.get("precision")
-    return f"on a CPU in {precision}" if precision else "on a CPU"
+    """Where and in which arithmetic it trained, in the card's words (older records lack both: a CPU then)."""
+    device = t.get("device", "cpu")
+    where = {"gpu": "on a GPU", "cpu": "on a CPU"}.get(device, f"on {device.upper()}")
+    return f"{where} in {t['precision']}" if t.get("precision") else where
 
 
 def _stages(t: dict) -> str:
