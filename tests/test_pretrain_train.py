@@ -236,7 +236,11 @@ def test_the_recipe_command_rebuilds_the_config_it_describes():
     from degusta_learn.config import to_dict
     from degusta_learn.finetune.pretrain.export import COMMAND, recipe_command
 
-    assert recipe_command(load_config(PretrainConfig, CONFIG)) == COMMAND
+    shipped = load_config(PretrainConfig, CONFIG)
+    assert recipe_command(shipped) == COMMAND == recipe_command(shipped, ran=shipped.trainer.precision)
+    other = "bf16-mixed" if shipped.trainer.precision == "32-true" else "32-true"
+    # the arithmetic the run trained in, not the config's word for it (bf16-mixed ran as fp32 on an AVX2 CPU)
+    assert recipe_command(shipped, ran=other) == f"{COMMAND} --set trainer.precision={other}"
     overrides = ["data.mix.transcribe=0.0", "model.vision_channels=[16,32,64,128]", "dataset=my data",
                  "trainer.max_steps=100", "trainer.run_name=elsewhere", "export=runs/it's (v2) & $HOME"]
     for last in ([], ["export='on'"]):

@@ -32,12 +32,16 @@ _LOGISTICS = {"trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.
 """Keys that say where a run logs and how it shows progress, not what it builds: left out of the recipe command."""
 
 
-def recipe_command(cfg) -> str:
+def recipe_command(cfg, ran: str | None = None) -> str:
     """The command that rebuilds the base `cfg` describes: COMMAND plus a `--set` for every key whose value differs
     from the shipped config's (a base built with overrides must not claim the plain command, which builds another
     model). Each `--set` is shell-quoted as a whole and its value written as YAML, so the shell hands the loader
     the value's YAML (a string such as 'on' stays a string). Where the shipped config cannot be read, the command
-    runs the folder's own resolved config (`pretrain_config.yaml`), which rebuilds it too."""
+    runs the folder's own resolved config (`pretrain_config.yaml`), which rebuilds it too.
+
+    `ran`: the precision the run actually trained in (`trainer.effective_precision`), compared in place of
+    `trainer.precision`: `bf16-mixed` is fp32 on a CPU without native bfloat16 and bf16 on one with it, and the two
+    build different bases (docs/tiny_base.md point 44), so the command names the arithmetic that built this one."""
     import shlex
 
     import yaml
@@ -54,8 +58,9 @@ def recipe_command(cfg) -> str:
         shipped = dict(flat(to_dict(load_config(type(cfg), SHIPPED_DIR / RECIPE))))
     except (DegustaError, OSError):  # the folder's resolved config is the recipe then
         return f"degusta train --config {PRETRAIN_CONFIG} (the resolved config in this folder)"
+    values = dict(flat(to_dict(cfg))) | ({"trainer.precision": ran} if ran else {})
     sets = [f"{k}={yaml.safe_dump(v, default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}"
-            for k, v in flat(to_dict(cfg)) if k not in _LOGISTICS and shipped.get(k, object()) != v]
+            for k, v in values.items() if k not in _LOGISTICS and shipped.get(k, object()) != v]
     return " ".join([COMMAND, *(f"--set {shlex.quote(s)}" for s in sets)])
 
 
@@ -73,6 +78,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     from degusta_learn.vlm.record import BaseRecord, write_record
 
     out = Path(out)
+    precision = effective_precision(cfg.trainer)
     curve = validation_curve(run_dir, "val/perception")
     arch = cfg.model
     n_params = sum(p.numel() for p in model.parameters())
@@ -87,10 +93,10 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
             # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
             prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
             catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
-            training={"command": recipe_command(cfg), "steps": steps,
+            training={"command": recipe_command(cfg, ran=precision), "steps": steps,
                       # the arithmetic this machine ran the config's trainer.precision in (bf16-mixed is 32-true
                       # on a CPU without native bfloat16): builds of one recipe in bf16 and in fp32 differ (point 44)
-                      "precision": effective_precision(cfg.trainer), "device": _device(cfg.trainer),
+                      "precision": precision, "device": _device(cfg.trainer),
                       "run_steps": run_steps if run_steps is not None else steps,
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
