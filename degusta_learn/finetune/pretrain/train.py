@@ -21,6 +21,8 @@ picked worse weights than the last twice, docs/tiny_base.md points 18-19).
 
 from __future__ import annotations
 
+import sys
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -223,12 +225,31 @@ class StepSampler:
 
 
 def prepare_model(model, cfg: PretrainConfig, export: bool = False) -> None:
-    """The training-only memory layout of the tower (`channels_last`), or with `export` the usual one back."""
-    if cfg.channels_last:
-        import torch
+    """The training-only memory layout of the tower (`channels_last`), or with `export` the usual one back.
 
-        layout = torch.contiguous_format if export else torch.channels_last
-        model.model.vision_tower.to(memory_format=layout)
+    A tower with a strided 1 x 1 convolution over fewer than 16 channels stays in the usual layout: on AVX-512 CPUs
+    oneDNN's backward pass of such a convolution in channels-last (8 channels in, 64 px) corrupts the heap and aborts
+    the process (torch 2.14.1; 4, 16 and more channels ran, as does every layer of the recipe's tower)."""
+    import torch
+
+    tower = model.model.vision_tower
+    if not cfg.channels_last:
+        return
+    if export:
+        tower.to(memory_format=torch.contiguous_format)
+    elif channels_last_is_safe(tower):
+        tower.to(memory_format=torch.channels_last)
+    else:
+        print("degusta: note: channels_last: the tower keeps the usual layout (a strided 1x1 convolution over fewer "
+              "than 16 channels aborts its backward pass in channels-last on AVX-512 CPUs)", file=sys.stderr)
+
+
+def channels_last_is_safe(tower) -> bool:
+    """False where the tower has a convolution that oneDNN mishandles in channels-last (`prepare_model`)."""
+    import torch
+
+    return not any(isinstance(m, torch.nn.Conv2d) and m.kernel_size == (1, 1) and max(m.stride) > 1
+                   and m.in_channels < 16 for m in tower.modules())
 
 
 def needs_oracle(d: PretrainData) -> bool:
