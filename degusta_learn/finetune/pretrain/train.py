@@ -22,7 +22,6 @@ picked worse weights than the last twice, docs/tiny_base.md points 18-19).
 from __future__ import annotations
 
 import sys
-
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -232,9 +231,9 @@ def prepare_model(model, cfg: PretrainConfig, export: bool = False) -> None:
     the process (torch 2.14.1; 4, 16 and more channels ran, as does every layer of the recipe's tower)."""
     import torch
 
-    tower = model.model.vision_tower
     if not cfg.channels_last:
         return
+    tower = model.model.vision_tower
     if export:
         tower.to(memory_format=torch.contiguous_format)
     elif channels_last_is_safe(tower):
