@@ -101,6 +101,13 @@ class TrainerConfig:
     "ddp_spawn" family is refused: it pickles the run)."""
     precision: str = "32-true"
     """"32-true", "bf16-mixed" (GPU), "16-mixed" (GPU)."""
+    cpu_kernels: Literal["native", "avx2"] = "native"
+    """Which x86 kernels torch, oneDNN and MKL compute with on the CPU: "native", the widest this CPU has (AVX-512
+    where present), or "avx2", capped at AVX2 (what most CPUs run). Rounding differs between them and takes a run
+    elsewhere: the pretraining recipe's builds met the fine-tuned route's bars with AVX2 kernels and failed them with
+    AVX-512 ones (docs/tiny_base.md, point 46), so its config asks for avx2. Kernels are chosen once per process, at
+    torch's first CPU operation: `degusta train` asks before it; a process that ran torch earlier keeps its kernels,
+    with a note. No effect off x86 or on a CPU without AVX2."""
     accumulate_grad_batches: int = bounded(1, 1, 10_000)
     """Gradient accumulation: effective batch = batch_size * this * devices * num_nodes."""
     gradient_clip_val: float | None = bounded(1.0, 0.0)
@@ -446,11 +453,12 @@ def _remove_if_empty_run(run: Path, created: Path | None) -> None:
 def training_run(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> Iterator[Path]:
     """The frame of every trainer's `run`: check trainer values, seed, and tidy up after a user mistake.
 
-    Checks `cfg` (and `monitor` against `monitors`, the keys the module logs) before anything is built or
-    written, seeds everything with `cfg.seed` *before* the caller builds its model and data (two runs with
-    one seed start from identical weights), and, when the body raises DegustaError before the run's first
+    Asks for the CPU kernels of `cfg.cpu_kernels` (`pin_cpu_kernels`), checks `cfg` (and `monitor` against
+    `monitors`, the keys the module logs) before anything is built or written, seeds everything with `cfg.seed`
+    *before* the caller builds its model and data (two runs with one seed start from identical weights), and, when the body raises DegustaError before the run's first
     checkpoint, removes the run folder if this call did not find it there. Yields the run folder path.
     """
+    pin_cpu_kernels(cfg.cpu_kernels)  # first: before any CPU operation of the run fixes the kernels
     check_trainer(cfg, monitors)
     seed_everything(cfg.seed)
     run = cfg.path
@@ -730,6 +738,36 @@ def torch_threads(n: int | None):
         yield
     finally:
         torch.set_num_threads(before)
+
+
+AVX2_KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"}
+"""The environment that caps torch's own kernels, oneDNN's and MKL's at AVX2 (each reads it at its first use)."""
+
+
+def pin_cpu_kernels(kernels: str) -> str:
+    """Ask torch, oneDNN and MKL for `kernels` (`TrainerConfig.cpu_kernels`: "avx2" caps them at AVX2, "native"
+    leaves them be) before this process's first CPU operation fixes them; variables already in the environment
+    are kept. Returns the kernels torch runs ("AVX2", "AVX512", "DEFAULT", ...), with a note on stderr where "avx2"
+    was asked for and is not what runs."""
+    import platform
+
+    import torch
+
+    x86_avx2 = (platform.machine().lower() in ("x86_64", "amd64")
+                and bool(getattr(torch.cpu, "_is_avx2_supported", lambda: False)()))
+    if kernels == "avx2" and x86_avx2:
+        for name, value in AVX2_KERNELS.items():
+            os.environ.setdefault(name, value)
+    running = torch.backends.cpu.get_cpu_capability()
+    if kernels == "avx2" and running != "AVX2":
+        asked = os.environ.get("ATEN_CPU_CAPABILITY", "")
+        why = (f"this CPU ({platform.machine() or 'unknown'}) has no AVX2" if not x86_avx2 else
+               f"ATEN_CPU_CAPABILITY={asked} in the environment asks for others" if asked.lower() != "avx2" else
+               "this process ran torch before the run began, and the kernels are chosen at its first operation; "
+               "start a fresh process, or set " + " ".join(f"{k}={v}" for k, v in AVX2_KERNELS.items())
+               + " before Python starts")
+        print(f"degusta: note: trainer.cpu_kernels avx2: torch runs its {running} kernels: {why}", file=sys.stderr)
+    return running
 
 
 def cpu_has_native_bf16() -> bool:

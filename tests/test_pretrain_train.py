@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import platform
 from pathlib import Path
 
 import pytest
@@ -205,10 +206,11 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     # the card's command rebuilds THIS model: the shipped recipe plus this run's overrides, not the plain command
     assert "--set data.teacher_weight=1" in meta["training"]["command"] in card
     assert f"--set export={out}" in meta["training"]["command"] and "run_name" not in meta["training"]["command"]
-    # the arithmetic this machine ran the config's precision in (bf16-mixed: 32-true without native bfloat16)
-    ran = effective_precision(load_config(PretrainConfig, CONFIG).trainer)
+    # the arithmetic this machine ran the config's precision in (bf16-mixed: 32-true without native bfloat16), and
+    # the kernels of this process (already chosen by earlier tests: the CLI test below shows the recipe's own)
+    ran, kernels = effective_precision(load_config(PretrainConfig, CONFIG).trainer), torch.backends.cpu.get_cpu_capability()
     assert meta["training"]["precision"] == ran and meta["training"]["device"] == "cpu"
-    assert f"on a CPU in {ran}." in card
+    assert meta["training"]["cpu_kernels"] == kernels and f"on a CPU in {ran} with {kernels} kernels." in card
     # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head
     model = AutoModelForImageTextToText.from_pretrained(out)
     assert type(model).__name__ == "FastVlmForConditionalGeneration"
@@ -234,13 +236,20 @@ def test_the_recipe_command_rebuilds_the_config_it_describes():
     import shlex
 
     from degusta_learn.config import to_dict
-    from degusta_learn.finetune.pretrain.export import COMMAND, recipe_command
+    from degusta_learn.finetune.pretrain.export import COMMAND, ran_as, recipe_command
 
     shipped = load_config(PretrainConfig, CONFIG)
-    assert recipe_command(shipped) == COMMAND == recipe_command(shipped, ran=shipped.trainer.precision)
+    assert shipped.trainer.cpu_kernels == "avx2"  # the kernels its passing builds computed with (point 46)
+    same = {"precision": shipped.trainer.precision, "cpu_kernels": "AVX2"}
+    assert recipe_command(shipped) == COMMAND == recipe_command(shipped, ran=ran_as(same)) == recipe_command(
+        shipped, ran=ran_as({}))  # a record without the facts says nothing about them
     other = "bf16-mixed" if shipped.trainer.precision == "32-true" else "32-true"
-    # the arithmetic the run trained in, not the config's word for it (bf16-mixed ran as fp32 on an AVX2 CPU)
-    assert recipe_command(shipped, ran=other) == f"{COMMAND} --set trainer.precision={other}"
+    # the arithmetic the run trained in, not the config's word for it (bf16-mixed ran as fp32 on an AVX2 CPU; the
+    # kernels the process got, AVX-512 where avx2 came too late or off x86 where it means nothing)
+    assert recipe_command(shipped, ran=ran_as({"precision": other})) == f"{COMMAND} --set trainer.precision={other}"
+    for kernels in ("AVX512", "DEFAULT"):
+        assert (recipe_command(shipped, ran=ran_as(same | {"cpu_kernels": kernels}))
+                == f"{COMMAND} --set trainer.cpu_kernels=native")
     overrides = ["data.mix.transcribe=0.0", "model.vision_channels=[16,32,64,128]", "dataset=my data",
                  "trainer.max_steps=100", "trainer.run_name=elsewhere", "export=runs/it's (v2) & $HOME"]
     for last in ([], ["export='on'"]):
@@ -466,9 +475,31 @@ def test_a_tower_whose_strided_1x1_convolution_oneDNN_mishandles_keeps_the_usual
     assert channels_last_is_safe(recipe.model.vision_tower)
 
 
+@pytest.mark.skipif(not (platform.machine().lower() in ("x86_64", "amd64") and torch.cpu._is_avx2_supported()),
+                    reason="the recipe's cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")
+def test_degusta_train_runs_the_recipe_on_avx2_kernels_and_the_export_says_so(tmp_path):
+    """The kernels are chosen at torch's first CPU operation: `degusta train` must ask for the recipe's before any,
+    on every CPU (the AVX-512 builds of the recipe failed the route's bars, docs/tiny_base.md point 46)."""
+    import os
+    import subprocess
+    import sys
+
+    from degusta_learn.trainer import AVX2_KERNELS
+
+    env = {k: v for k, v in os.environ.items() if k not in AVX2_KERNELS}
+    done = subprocess.run([sys.executable, "-m", "degusta_learn.cli", "train", "--config", str(CONFIG),
+                           *(x for o in _overrides(tmp_path, 1) for x in ("--set", o))],
+                          capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    training = json.loads((tmp_path / "base" / "degusta_base.json").read_text())["training"]
+    assert training["cpu_kernels"] == "AVX2" and "cpu_kernels" not in training["command"]
+    assert "trainer.cpu_kernels" not in done.stderr  # no note: nothing ran before it asked
+
+
 @pytest.mark.parametrize("record, words", [
     ({}, "on a CPU"),  # a record from before the device and precision were written down
     ({"device": "cpu", "precision": "32-true"}, "on a CPU in 32-true"),
+    ({"device": "cpu", "precision": "32-true", "cpu_kernels": "AVX2"}, "on a CPU in 32-true with AVX2 kernels"),
     ({"device": "gpu", "precision": "bf16-mixed"}, "on a GPU in bf16-mixed"),
 ])
 def test_the_card_says_where_and_in_which_precision_the_base_trained(record, words):

@@ -70,14 +70,16 @@ def test_the_card_reports_the_transcribe_score_when_the_benchmark_measured_it(tm
 def test_each_shipped_bases_card_gives_the_command_that_rebuilds_it_from_todays_recipe():
     """The shipped config changes (channels_last, fewer validations, shorter stages); a base built before must name the
     `--set` values that repeat its own run, as `recipe_command` derives them from the folder's resolved config and
-    the precision the run trained in (recorded: `bf16-mixed` in a config is fp32 on one CPU and bf16 on another)."""
+    the precision and CPU kernels the run trained with (recorded: `bf16-mixed` in a config is fp32 on one CPU and bf16
+    on another, `cpu_kernels: native` AVX2 on one and AVX-512 on another)."""
     from degusta_learn.config import load_config
-    from degusta_learn.finetune.pretrain.export import recipe_command
+    from degusta_learn.finetune.pretrain.export import ran_as, recipe_command
     from degusta_learn.finetune.pretrain.train import PretrainConfig
 
     for folder in sorted(BASE_DIR.parent.glob("tiny_vlm_base*")):
         resolved = load_config(PretrainConfig, folder / "pretrain_config.yaml")
         training = json.loads((folder / "degusta_base.json").read_text())["training"]
         command = training["command"]
-        assert command == recipe_command(resolved, ran=training["precision"]), folder
+        assert training.get("cpu_kernels"), folder  # both were built on CPUs: which kernels is part of the recipe
+        assert command == recipe_command(resolved, ran=ran_as(training)), folder
         assert f"`{command}`" in (folder / "README.md").read_text(), folder

@@ -144,3 +144,43 @@ def test_a_step_on_fewer_torch_threads_gives_them_back():
     with pytest.raises(RuntimeError), torch_threads(1):
         raise RuntimeError("a failed step")
     assert torch.get_num_threads() == before
+
+
+def _fresh_python(code: str, **env: str):
+    """Run `code` in a new interpreter whose environment has none of the kernel variables (plus `env`)."""
+    import os
+    import subprocess
+    import sys
+
+    from degusta_learn.trainer import AVX2_KERNELS
+
+    clean = {k: v for k, v in os.environ.items() if k not in AVX2_KERNELS} | env
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=clean, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout.strip().splitlines()[-1], done.stderr
+
+
+def _x86_avx2() -> bool:
+    import platform
+
+    return platform.machine().lower() in ("x86_64", "amd64") and torch.cpu._is_avx2_supported()
+
+
+PIN = "from degusta_learn.trainer import pin_cpu_kernels; print(pin_cpu_kernels({!r}))"
+
+
+@pytest.mark.skipif(not _x86_avx2(), reason="cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")
+def test_cpu_kernels_avx2_caps_a_fresh_process_and_says_where_it_comes_too_late():
+    native, _ = _fresh_python("import torch; print(torch.backends.cpu.get_cpu_capability())")
+    assert _fresh_python(PIN.format("native"))[0] == native  # the default leaves the kernels be
+    kernels, err = _fresh_python(PIN.format("avx2"))
+    assert kernels == "AVX2" and "note" not in err
+    # torch ran an operation first: the kernels are fixed, the run goes on with them and says so (where they differ)
+    kernels, err = _fresh_python("import torch; torch.ones(2).add_(1); " + PIN.format("avx2"))
+    assert kernels == native
+    assert ("this process ran torch before the run began" in err) == (native != "AVX2"), err
+    # a variable the user set wins, and the note names it
+    kernels, err = _fresh_python(PIN.format("avx2"), ATEN_CPU_CAPABILITY="default")
+    assert kernels == "DEFAULT" and "ATEN_CPU_CAPABILITY=default in the environment" in err
+    with pytest.raises(DegustaError, match=r"trainer.cpu_kernels: expected one of \['native', 'avx2'\]"):
+        from_dict(TrainerConfig, {"cpu_kernels": "avx512"}, prefix="trainer.")

@@ -32,16 +32,28 @@ _LOGISTICS = {"trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.
 """Keys that say where a run logs and how it shows progress, not what it builds: left out of the recipe command."""
 
 
-def recipe_command(cfg, ran: str | None = None) -> str:
+def ran_as(training: dict) -> dict:
+    """The config values that a base's training record says its run computed with, for `recipe_command(ran=...)`:
+    `trainer.precision` from the arithmetic it ran (bf16-mixed is 32-true on a CPU without native bfloat16), and on
+    a CPU `trainer.cpu_kernels` from the kernels torch ran ("AVX2" is what `avx2` asks for, anything else `native`).
+    Records that lack a key say nothing about it."""
+    ran = {"trainer.precision": training["precision"]} if training.get("precision") else {}
+    if training.get("cpu_kernels"):
+        ran["trainer.cpu_kernels"] = "avx2" if training["cpu_kernels"] == "AVX2" else "native"
+    return ran
+
+
+def recipe_command(cfg, ran: dict | None = None) -> str:
     """The command that rebuilds the base `cfg` describes: COMMAND plus a `--set` for every key whose value differs
     from the shipped config's (a base built with overrides must not claim the plain command, which builds another
     model). Each `--set` is shell-quoted as a whole and its value written as YAML, so the shell hands the loader
     the value's YAML (a string such as 'on' stays a string). Where the shipped config cannot be read, the command
     runs the folder's own resolved config (`pretrain_config.yaml`), which rebuilds it too.
 
-    `ran`: the precision the run actually trained in (`trainer.effective_precision`), compared in place of
-    `trainer.precision`: `bf16-mixed` is fp32 on a CPU without native bfloat16 and bf16 on one with it, and the two
-    build different bases (docs/tiny_base.md point 44), so the command names the arithmetic that built this one."""
+    `ran`: what the run actually computed with (`ran_as`), compared in place of the config's values: `bf16-mixed` is
+    fp32 on a CPU without native bfloat16 and bf16 on one with it, `cpu_kernels: native` is AVX2 on one CPU and
+    AVX-512 on another, and each pair builds different bases (docs/tiny_base.md points 44, 46), so the command names
+    the arithmetic that built this one."""
     import shlex
 
     import yaml
@@ -58,7 +70,7 @@ def recipe_command(cfg, ran: str | None = None) -> str:
         shipped = dict(flat(to_dict(load_config(type(cfg), SHIPPED_DIR / RECIPE))))
     except (DegustaError, OSError):  # the folder's resolved config is the recipe then
         return f"degusta train --config {PRETRAIN_CONFIG} (the resolved config in this folder)"
-    values = dict(flat(to_dict(cfg))) | ({"trainer.precision": ran} if ran else {})
+    values = dict(flat(to_dict(cfg))) | (ran or {})
     sets = [f"{k}={yaml.safe_dump(v, default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}"
             for k, v in values.items() if k not in _LOGISTICS and shipped.get(k, object()) != v]
     return " ".join([COMMAND, *(f"--set {shlex.quote(s)}" for s in sets)])
@@ -78,7 +90,12 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     from degusta_learn.vlm.record import BaseRecord, write_record
 
     out = Path(out)
-    precision = effective_precision(cfg.trainer)
+    device = _device(cfg.trainer)
+    arithmetic = {"precision": effective_precision(cfg.trainer), "device": device}
+    if device == "cpu":  # the kernels this process computed with (chosen once per process: the last stretch's)
+        import torch
+
+        arithmetic["cpu_kernels"] = torch.backends.cpu.get_cpu_capability()
     curve = validation_curve(run_dir, "val/perception")
     arch = cfg.model
     n_params = sum(p.numel() for p in model.parameters())
@@ -93,10 +110,10 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
             # prompts the base this way zero-shot, as it prompts a fine-tuned model the way it was trained
             prompt=PromptOptions(include=["objects", "context", "target"], compose=["objects"]),
             catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
-            training={"command": recipe_command(cfg, ran=precision), "steps": steps,
-                      # the arithmetic this machine ran the config's trainer.precision in (bf16-mixed is 32-true
-                      # on a CPU without native bfloat16): builds of one recipe in bf16 and in fp32 differ (point 44)
-                      "precision": precision, "device": _device(cfg.trainer),
+            training={"command": recipe_command(cfg, ran=ran_as(arithmetic)), "steps": steps,
+                      # the arithmetic this machine ran the config in (bf16-mixed is 32-true on a CPU without native
+                      # bfloat16; the kernels AVX2 or AVX-512): builds of one recipe in each differ (points 44, 46)
+                      **arithmetic,
                       "run_steps": run_steps if run_steps is not None else steps,
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
@@ -131,10 +148,11 @@ def _device(trainer) -> str:
 
 
 def _where(t: dict) -> str:
-    """Where and in which arithmetic it trained, in the card's words (older records lack both: a CPU then)."""
+    """Where and in which arithmetic it trained, in the card's words (older records lack these: a CPU then)."""
     device = t.get("device", "cpu")
     where = {"gpu": "on a GPU", "cpu": "on a CPU"}.get(device, f"on {device.upper()}")
-    return f"{where} in {t['precision']}" if t.get("precision") else where
+    where = f"{where} in {t['precision']}" if t.get("precision") else where
+    return f"{where} with {t['cpu_kernels']} kernels" if t.get("cpu_kernels") else where
 
 
 def _stages(t: dict) -> str:
