@@ -15,6 +15,7 @@ most): the recipe's own log is the measure of its time (benchmarks/RESULTS.md, "
 
 Usage:
     python benchmarks/bench_pretrain_steps.py --steps 30
+    python benchmarks/bench_pretrain_steps.py --steps 30 --set trainer.cpu_kernels=native   # the CPU's own kernels
     python benchmarks/bench_pretrain_steps.py --steps 30 --set channels_last=false --compare channels_last=true
 """
 
@@ -121,9 +122,20 @@ def main(argv=None) -> int:
     p.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
                    help="also time the recipe with these overrides added, and print the ratio")
     a = p.parse_args(argv)
+    if any(o.split("=")[0].strip() == "trainer.cpu_kernels" for o in a.compare):
+        p.error("--compare trainer.cpu_kernels: the kernels are chosen once per process; run the script twice "
+                "with --set trainer.cpu_kernels=native and without it")
     import torch
 
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    from degusta_learn.config import load_config
+    from degusta_learn.finetune.pretrain.export import RECIPE
+    from degusta_learn.finetune.pretrain.train import PretrainConfig
+    from degusta_learn.shipped import SHIPPED_DIR
+    from degusta_learn.trainer import pin_cpu_kernels
+
+    kernels = pin_cpu_kernels(load_config(PretrainConfig, str(SHIPPED_DIR / RECIPE), a.set).trainer.cpu_kernels)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {kernels} kernels (the recipe's "
+          "trainer.cpu_kernels, as degusta train asks for them)")
     if not a.compare:
         report("recipe", measure(a.set, a.steps))
         return 0

@@ -455,8 +455,9 @@ def training_run(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> I
 
     Asks for the CPU kernels of `cfg.cpu_kernels` (`pin_cpu_kernels`), checks `cfg` (and `monitor` against
     `monitors`, the keys the module logs) before anything is built or written, seeds everything with `cfg.seed`
-    *before* the caller builds its model and data (two runs with one seed start from identical weights), and, when the body raises DegustaError before the run's first
-    checkpoint, removes the run folder if this call did not find it there. Yields the run folder path.
+    *before* the caller builds its model and data (two runs with one seed start from identical weights), and,
+    when the body raises DegustaError before the run's first checkpoint, removes the run folder if this call did
+    not find it there. Yields the run folder path.
     """
     pin_cpu_kernels(cfg.cpu_kernels)  # first: before any CPU operation of the run fixes the kernels
     check_trainer(cfg, monitors)
@@ -770,6 +771,13 @@ def pin_cpu_kernels(kernels: str) -> str:
     return running
 
 
+def trains_on_gpu(cfg: TrainerConfig) -> bool:
+    """Whether a run of `cfg` trains on a GPU on this machine (`accelerator: gpu`, or `auto` where CUDA is present)."""
+    import torch
+
+    return cfg.accelerator in ("gpu", "cuda") or (cfg.accelerator == "auto" and torch.cuda.is_available())
+
+
 def cpu_has_native_bf16() -> bool:
     """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX); elsewhere torch emulates it, ~60x slower
     than float32 (`run_precision`): autocast to bfloat16 on the CPU only where this is true."""
@@ -782,11 +790,7 @@ def effective_precision(cfg: TrainerConfig) -> str:
     """The precision a run of `cfg` uses on this machine: `cfg.precision`, except bfloat16 on a CPU that has no
     native bfloat16 (AVX512-BF16 or AMX), which runs it emulated: measured on an AVX2 EPYC, a 3x3 convolution 127x
     and a matmul 60x slower than float32. There it is 32-true (the same config stays fast where bf16 is native)."""
-    import torch
-
-    if cfg.precision not in ("bf16-mixed", "bf16") or cfg.accelerator not in ("cpu", "auto"):
-        return cfg.precision
-    if cfg.accelerator == "auto" and torch.cuda.is_available():
+    if cfg.precision not in ("bf16-mixed", "bf16") or cfg.accelerator not in ("cpu", "auto") or trains_on_gpu(cfg):
         return cfg.precision
     return cfg.precision if cpu_has_native_bf16() else "32-true"
 

@@ -208,7 +208,8 @@ def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     assert f"--set export={out}" in meta["training"]["command"] and "run_name" not in meta["training"]["command"]
     # the arithmetic this machine ran the config's precision in (bf16-mixed: 32-true without native bfloat16), and
     # the kernels of this process (already chosen by earlier tests: the CLI test below shows the recipe's own)
-    ran, kernels = effective_precision(load_config(PretrainConfig, CONFIG).trainer), torch.backends.cpu.get_cpu_capability()
+    ran = effective_precision(load_config(PretrainConfig, CONFIG).trainer)
+    kernels = torch.backends.cpu.get_cpu_capability()
     assert meta["training"]["precision"] == ran and meta["training"]["device"] == "cpu"
     assert meta["training"]["cpu_kernels"] == kernels and f"on a CPU in {ran} with {kernels} kernels." in card
     # loadable by the plain transformers Auto classes and by the toolkit's loader, without the dense head

@@ -333,6 +333,7 @@ def dry_run(cfg: FinetuneConfig, log=print) -> None:
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
     from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
+    from degusta_learn.trainer import trains_on_gpu
 
     ds = load_dataset(cfg.dataset)
     grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
@@ -366,7 +367,7 @@ def dry_run(cfg: FinetuneConfig, log=print) -> None:
     refuse_over_budget(train, counts, collator)
     refuse_over_budget(val, val_counts, collator)
     t = cfg.trainer
-    on_gpu = t.accelerator in ("gpu", "cuda") or (t.accelerator == "auto" and torch.cuda.is_available())
+    on_gpu = trains_on_gpu(t)
     what = {"lora": f"LoRA r={cfg.lora.r} adapters", "qlora": f"QLoRA r={cfg.lora.r} adapters on a 4-bit base",
             "full": "full fine-tuning" + (" (vision tower frozen)" if cfg.lora.freeze_vision else "")}[cfg.lora.mode]
     lines = [("model", f"{cfg.model.name} ({config.model_type}): {total:,} parameters, built on the meta device "

@@ -140,9 +140,9 @@ def _fmt(v) -> str:
 
 def _device(trainer) -> str:
     """"gpu", "cpu", "mps" or "tpu": where a run of `trainer` (a TrainerConfig) trains on this machine."""
-    import torch
+    from degusta_learn.trainer import trains_on_gpu
 
-    if trainer.accelerator in ("gpu", "cuda") or (trainer.accelerator == "auto" and torch.cuda.is_available()):
+    if trains_on_gpu(trainer):
         return "gpu"
     return trainer.accelerator if trainer.accelerator in ("mps", "tpu") else "cpu"
 

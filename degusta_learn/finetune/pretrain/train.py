@@ -33,7 +33,7 @@ from degusta_learn.render.grid import Grid
 from degusta_learn.finetune.pretrain.base import OUTPUT_STRIDE, BaseArchitecture
 from degusta_learn.finetune.pretrain.tasks import TaskMix
 from degusta_learn.methods import TrainerSpec
-from degusta_learn.trainer import TrainerConfig
+from degusta_learn.trainer import TrainerConfig, trains_on_gpu
 
 
 @dataclass
@@ -428,7 +428,7 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
                                       f"({d.curriculum_steps} steps), teacher and warmup start at step {d.tower_steps}"
                                       + ("; the tower is then frozen" if d.freeze_tower else "")))
     lines += dry_run_trainer_lines(t, monitor_keys(cfg), d.steps_per_epoch * d.batch_size, d.batch_size)
-    on_gpu = t.accelerator in ("gpu", "cuda") or (t.accelerator == "auto" and torch.cuda.is_available())
+    on_gpu = trains_on_gpu(t)
     mem = vlm_memory(ModelConfig(dtype="float32"), LoraConfig(mode="full"), t, config, total, total, d.batch_size,
                      counts, on_gpu)
     lines.append(("predicted memory", mem.describe()))
