@@ -745,6 +745,16 @@ AVX2_KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MK
 """The environment that caps torch's own kernels, oneDNN's and MKL's at AVX2 (each reads it at its first use)."""
 
 
+def x86_with_avx2() -> bool:
+    """Whether this CPU is an x86 one with AVX2: where `cpu_kernels: avx2` can cap the kernels at all."""
+    import platform
+
+    import torch
+
+    return (platform.machine().lower() in ("x86_64", "amd64")
+            and bool(getattr(torch.cpu, "_is_avx2_supported", lambda: False)()))
+
+
 def pin_cpu_kernels(kernels: str) -> str:
     """Ask torch, oneDNN and MKL for `kernels` (`TrainerConfig.cpu_kernels`: "avx2" caps them at AVX2, "native"
     leaves them be) before this process's first CPU operation fixes them; variables already in the environment
@@ -754,8 +764,7 @@ def pin_cpu_kernels(kernels: str) -> str:
 
     import torch
 
-    x86_avx2 = (platform.machine().lower() in ("x86_64", "amd64")
-                and bool(getattr(torch.cpu, "_is_avx2_supported", lambda: False)()))
+    x86_avx2 = x86_with_avx2()
     if kernels == "avx2" and x86_avx2:
         for name, value in AVX2_KERNELS.items():
             os.environ.setdefault(name, value)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import platform
 from pathlib import Path
 
 import pytest
@@ -18,6 +17,7 @@ from degusta_learn.finetune.pretrain.train import PretrainConfig
 from degusta_learn.methods import run_train
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import default_catalog, default_tables
+from degusta_learn.trainer import x86_with_avx2
 
 CONFIG = Path(__file__).parent.parent / "configs" / "pretrain_tiny_vlm_cpu.yaml"
 TINY = ["model.vision_channels=[8,8,16,16]", "model.vision_stem=8", "model.text_hidden=32", "model.text_layers=1",
@@ -476,7 +476,7 @@ def test_a_tower_whose_strided_1x1_convolution_oneDNN_mishandles_keeps_the_usual
     assert channels_last_is_safe(recipe.model.vision_tower)
 
 
-@pytest.mark.skipif(not (platform.machine().lower() in ("x86_64", "amd64") and torch.cpu._is_avx2_supported()),
+@pytest.mark.skipif(not x86_with_avx2(),
                     reason="the recipe's cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")
 def test_degusta_train_runs_the_recipe_on_avx2_kernels_and_the_export_says_so(tmp_path):
     """The kernels are chosen at torch's first CPU operation: `degusta train` must ask for the recipe's before any,

@@ -7,7 +7,7 @@ from torch.utils.data import DataLoader, TensorDataset
 
 from degusta_learn.config import from_dict, read_yaml
 from degusta_learn.errors import DegustaError
-from degusta_learn.trainer import TrainerConfig, fit, prepare_run_dir, validation_curve
+from degusta_learn.trainer import TrainerConfig, fit, prepare_run_dir, validation_curve, x86_with_avx2
 
 
 class Toy(L.LightningModule):
@@ -160,16 +160,10 @@ def _fresh_python(code: str, **env: str):
     return done.stdout.strip().splitlines()[-1], done.stderr
 
 
-def _x86_avx2() -> bool:
-    import platform
-
-    return platform.machine().lower() in ("x86_64", "amd64") and torch.cpu._is_avx2_supported()
-
-
 PIN = "from degusta_learn.trainer import pin_cpu_kernels; print(pin_cpu_kernels({!r}))"
 
 
-@pytest.mark.skipif(not _x86_avx2(), reason="cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")
+@pytest.mark.skipif(not x86_with_avx2(), reason="cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")
 def test_cpu_kernels_avx2_caps_a_fresh_process_and_says_where_it_comes_too_late():
     native, _ = _fresh_python("import torch; print(torch.backends.cpu.get_cpu_capability())")
     assert _fresh_python(PIN.format("native"))[0] == native  # the default leaves the kernels be
