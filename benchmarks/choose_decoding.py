@@ -18,6 +18,7 @@ Usage:
         --set backend.adapter=RUN/adapter --set out=OUT/val_s0.jsonl            # one per seed
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split val OUT/val_s0.jsonl OUT/val_s1.jsonl
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split test --only votes TEST_s0.jsonl ...
+    python benchmarks/choose_decoding.py ... --samples 5 VAL_n9_s0.jsonl   # n = 5 from a run with n = 9
 """
 
 from __future__ import annotations
@@ -45,12 +46,18 @@ def parsed(text, catalog, grid):
         return None
 
 
-def decodings(prediction, catalog, grid) -> dict[str, list]:
-    """Every way's placements for one prediction of a greedy_votes run."""
+def decodings(prediction, catalog, grid, samples: int | None = None) -> dict[str, list]:
+    """Every way's placements for one prediction of a greedy_votes run; `samples`: from its first that many sampled
+    answers only (what a run with that `n` would have combined: predict samples answer i with the same seed
+    whatever n is), all of them when None."""
     from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, anchored_votes
 
     diag = prediction.diagnostics or {}
-    samples = [parsed(t, catalog, grid) for t in diag.get("responses") or []]
+    stored = diag.get("responses") or []
+    if samples is not None and len(stored) < samples:
+        raise SystemExit(f"error: episode {prediction.episode}: {len(stored)} sampled answers stored, --samples "
+                         f"{samples} asked (predict with n >= {samples})")
+    samples = [parsed(t, catalog, grid) for t in stored[:samples]]
     greedy = parsed(diag.get("greedy_response"), catalog, grid)
     if not samples or "greedy_response" not in diag:
         raise SystemExit(f"error: episode {prediction.episode}: no stored answers (predict with n > 1 and "
@@ -73,6 +80,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="the participant split seed (the training run's)")
     ap.add_argument("--only", choices=WAYS, help="score this way alone (the one chosen on the validation participants)")
     ap.add_argument("--by", default="set_rmsd", choices=sorted(LOWER_IS_BETTER), help="the score that chooses")
+    ap.add_argument("--samples", type=int, default=None, help="combine each episode's first K sampled answers only "
+                    "(choose n from one run with more; default: all stored)")
     ap.add_argument("--rows", type=int, default=8)
     ap.add_argument("--cols", type=int, default=8)
     args = ap.parse_args()
@@ -100,7 +109,7 @@ def main() -> None:
         if missing:
             raise SystemExit(f"error: {path} lacks {len(missing)} of the {len(order)} {args.split} episodes "
                              f"(context {args.context}, seed {args.seed}; first: {missing[0]})")
-        ways = {i: decodings(by[i], ds.catalog, grid) for i in order}
+        ways = {i: decodings(by[i], ds.catalog, grid, args.samples) for i in order}
         names = [args.only] if args.only else WAYS
         runs.append({w: scores([dataclasses.replace(by[i], placements=ways[i][w]) for i in order]) for w in names})
     base = scores([pop[i] for i in order])

@@ -57,3 +57,18 @@ def test_the_choice_is_made_on_the_set_score_not_on_short_answers(small_dataset_
                                       "--split", "test"])
     with pytest.raises(SystemExit, match=r"lacks \d+ of the \d+ test episodes"):
         bench.main()
+
+
+def test_samples_combines_the_first_k_stored_answers_as_a_run_with_that_n_would(small_dataset):
+    e = make_episodes(small_dataset, 4, "test", 0)[0]
+    truth = answer_items(small_dataset.arrangement(e.participant, e.target).placements, small_dataset.catalog, "grid", G)
+    samples = [truth, truth, truth[:1], truth[:1], truth[:1]]  # median length: the table (first 3), 1 (all 5)
+    pred = Prediction(e.id, e.participant, e.target, "mogma", [], diagnostics={
+        "responses": [format_answer(s, "grid") for s in samples], "greedy_response": format_answer(truth[:1], "grid")})
+    assert len(truth) > 1
+    first3 = bench.decodings(pred, small_dataset.catalog, G, samples=3)
+    assert first3["greedy_votes"] == anchored_votes(truth[:1], samples[:3], "grid", G)[0]
+    assert len(first3["greedy_votes"]) == len(truth)
+    assert len(bench.decodings(pred, small_dataset.catalog, G)["greedy_votes"]) == 1
+    with pytest.raises(SystemExit, match=r"5 sampled answers stored, --samples 6 asked"):
+        bench.decodings(pred, small_dataset.catalog, G, samples=6)
