@@ -85,6 +85,8 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=8)
     ap.add_argument("--cols", type=int, default=8)
     args = ap.parse_args()
+    if args.samples is not None and args.samples < 1:
+        ap.error(f"--samples {args.samples}: give at least 1")
 
     from degusta_learn.methods import get_method
     from degusta_learn.metrics import paired_bootstrap, score_many
