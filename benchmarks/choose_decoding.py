@@ -57,17 +57,17 @@ def decodings(prediction, catalog, grid, samples: int | None = None) -> dict[str
     if samples is not None and len(stored) < samples:
         raise SystemExit(f"error: episode {prediction.episode}: {len(stored)} sampled answers stored, --samples "
                          f"{samples} asked (predict with n >= {samples})")
-    samples = [parsed(t, catalog, grid) for t in stored[:samples]]
+    answers = [parsed(t, catalog, grid) for t in stored[:samples]]
     greedy = parsed(diag.get("greedy_response"), catalog, grid)
-    if not samples or "greedy_response" not in diag:
+    if not answers or "greedy_response" not in diag:
         raise SystemExit(f"error: episode {prediction.episode}: no stored answers (predict with n > 1 and "
                          "aggregation: greedy_votes)")
     return {
         "greedy": anchored_votes(greedy, [], "grid", grid)[0] if greedy is not None else [],
-        "steps": aggregate(samples, "grid", grid)[0],
-        "votes": aggregate_votes(samples, "grid", grid)[0],
-        "greedy_votes": anchored_votes(greedy, samples, "grid", grid)[0],
-        "greedy_votes_pooled": anchored_votes(greedy, samples, "grid", grid, pooled=True)[0],
+        "steps": aggregate(answers, "grid", grid)[0],
+        "votes": aggregate_votes(answers, "grid", grid)[0],
+        "greedy_votes": anchored_votes(greedy, answers, "grid", grid)[0],
+        "greedy_votes_pooled": anchored_votes(greedy, answers, "grid", grid, pooled=True)[0],
     }
 
 
