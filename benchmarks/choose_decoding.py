@@ -1,8 +1,9 @@
 """Choose a decoding on the validation participants, then score only that one on the test episodes.
 
 A fine-tune's answers to the same prompts can become one plan in several ways (`prompting/aggregate.py`): the greedy
-answer, the paper's per-step modes, object votes, the greedy answer lengthened by votes (`greedy_votes`), and that
-with each of the greedy answer's objects placed from every answer naming it (`greedy_votes` + `pooled`). One
+answer, the paper's per-step modes, object votes, the greedy answer lengthened by votes (`greedy_votes`), that
+with each of the greedy answer's objects placed from every answer naming it (`greedy_votes` + `pooled`), and that at
+the context tables' median count (`greedy_votes_context`, which reads the episodes' contexts from the dataset). One
 `degusta predict` run with `aggregation: greedy_votes` stores everything they need per episode (the n sampled
 answers in `diagnostics.responses`, the greedy one in `diagnostics.greedy_response`), so every way is scored from
 the same answers here, without asking the model again.
@@ -29,7 +30,7 @@ import dataclasses
 import numpy as np
 
 METRICS = ("object_accuracy", "rmsd", "set_rmsd", "count_error", "n_pred")
-WAYS = ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled")
+WAYS = ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled", "greedy_votes_context")
 """The aggregations `decodings` scores, in its order."""
 LOWER_IS_BETTER = {"rmsd": True, "set_rmsd": True, "count_error": True, "object_accuracy": False}
 
@@ -46,11 +47,13 @@ def parsed(text, catalog, grid):
         return None
 
 
-def decodings(prediction, catalog, grid, samples: int | None = None) -> dict[str, list]:
+def decodings(prediction, catalog, grid, samples: int | None = None,
+              context_counts: list[int] | None = None) -> dict[str, list]:
     """Every way's placements for one prediction of a greedy_votes run; `samples`: from its first that many sampled
     answers only (what a run with that `n` would have combined: predict samples answer i with the same seed
-    whatever n is), all of them when None."""
-    from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, anchored_votes
+    whatever n is), all of them when None; `context_counts`: the episode's context tables' object counts
+    (greedy_votes_context's length; None: the samples' median, as predict does for an episode without context)."""
+    from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, anchored_votes, context_length
 
     diag = prediction.diagnostics or {}
     stored = diag.get("responses") or []
@@ -68,6 +71,8 @@ def decodings(prediction, catalog, grid, samples: int | None = None) -> dict[str
         "votes": aggregate_votes(answers, "grid", grid)[0],
         "greedy_votes": anchored_votes(greedy, answers, "grid", grid)[0],
         "greedy_votes_pooled": anchored_votes(greedy, answers, "grid", grid, pooled=True)[0],
+        "greedy_votes_context": anchored_votes(greedy, answers, "grid", grid, pooled=True,
+                                               length=context_length(context_counts))[0],
     }
 
 
@@ -101,6 +106,9 @@ def main() -> None:
     pop = {p.episode: p for p in spec.run(spec.config_cls(method="population_mean", dataset=args.dataset, out="",
                                                           split=args.split), ds, episodes)}
 
+    def counts(e) -> list[int]:
+        return [len(ds.arrangement(e.participant, t).placements) for t in e.context]
+
     def scores(preds) -> dict[str, np.ndarray]:
         return {k: np.array([getattr(s, k) for s in score_many(ds.catalog, gts, preds)], float) for k in METRICS}
 
@@ -111,7 +119,7 @@ def main() -> None:
         if missing:
             raise SystemExit(f"error: {path} lacks {len(missing)} of the {len(order)} {args.split} episodes "
                              f"(context {args.context}, seed {args.seed}; first: {missing[0]})")
-        ways = {i: decodings(by[i], ds.catalog, grid, args.samples) for i in order}
+        ways = {e.id: decodings(by[e.id], ds.catalog, grid, args.samples, counts(e)) for e in episodes}
         names = [args.only] if args.only else WAYS
         runs.append({w: scores([dataclasses.replace(by[i], placements=ways[i][w]) for i in order]) for w in names})
     base = scores([pop[i] for i in order])

@@ -6,7 +6,7 @@ import sys
 import pytest
 from benchmark_support import load_benchmark
 
-from degusta_learn.prompting.aggregate import aggregate_votes, anchored_votes
+from degusta_learn.prompting.aggregate import aggregate_votes, anchored_votes, combine
 from degusta_learn.prompting.answers import answer_items, format_answer
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Prediction, load_dataset, make_episodes, write_predictions
@@ -34,11 +34,17 @@ def test_each_way_is_the_librarys_aggregation_of_the_stored_answers(small_datase
         "responses": [format_answer(s, "grid") for s in samples] + ["not an answer"],
         "greedy_response": format_answer(truth[:2], "grid")})
     ways = bench.decodings(pred, small_dataset.catalog, G)
-    assert tuple(ways) == bench.WAYS == ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled")
+    assert tuple(ways) == bench.WAYS == ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled",
+                                         "greedy_votes_context")
     assert ways["votes"] == aggregate_votes(samples, "grid", G)[0]
     assert ways["greedy_votes"] == anchored_votes(truth[:2], samples, "grid", G)[0]
     assert ways["greedy_votes_pooled"] == anchored_votes(truth[:2], samples, "grid", G, pooled=True)[0]
+    assert ways["greedy_votes_context"] == ways["greedy_votes_pooled"]  # no context counts: the samples' median
     assert [p.object for p in ways["greedy"]] == [it.id for it in truth[:2]]
+    one = bench.decodings(pred, small_dataset.catalog, G, context_counts=[1, 1, 2])["greedy_votes_context"]
+    assert one == ways["greedy_votes_pooled"][:1]  # the context tables' median count: 1
+    assert len(truth) >= 3 and combine(samples, "grid", G, how="greedy_votes_context", anchor=truth[:2],
+                                       context_counts=[3, 3, 5, 2])[0] == one + ways["greedy_votes_pooled"][1:3]
 
 
 def test_the_choice_is_made_on_the_set_score_not_on_short_answers(small_dataset_dir, tmp_path, monkeypatch, capsys):

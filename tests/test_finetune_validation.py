@@ -82,7 +82,8 @@ def test_validation_batches_by_eval_batch_size(tiny, monkeypatch):
     assert _module(tiny).cfg.eval.batch_size is None  # data.batch_size then
 
 
-@pytest.mark.parametrize("aggregation", ["steps", "votes", "greedy_votes", "greedy_votes_pooled"])
+@pytest.mark.parametrize("aggregation", ["steps", "votes", "greedy_votes", "greedy_votes_pooled",
+                                         "greedy_votes_context"])
 def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_path, aggregation):
     """eval.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers
     (`eval.aggregation` as predict's `aggregation`; greedy_votes: one more, greedy generate call)."""
@@ -119,8 +120,14 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
     assert row["placements"] == pred.placements and row["parsed"] == 0.75
     assert (row["set_rmsd"], row["acc"], row["n_matched"]) == (expected.set_rmsd, expected.object_accuracy,
                                                                 expected.n_matched)
+    assert pred.diagnostics["aggregation"] == aggregation
+    if aggregation == "greedy_votes_context":  # the length of the episode's own context tables, in both
+        counts = [len(ds.arrangement(ep.participant, t).placements) for t in ep.context]
+        assert ex.context == ep.context and len(counts) == 2 and pred.diagnostics["length_from"] == "context"
+        assert pred.diagnostics["length"] == round(sum(counts) / 2)
+        return
     # the mode length (steps) or the median length (votes): a real aggregate, not the first answer
-    assert len(pred.placements) == len(truth) - 1 and pred.diagnostics["aggregation"] == aggregation
+    assert len(pred.placements) == len(truth) - 1
 
 
 def test_eval_temperature_defaults():

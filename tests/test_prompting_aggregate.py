@@ -186,3 +186,32 @@ def test_greedy_votes_keep_the_greedy_answer_and_add_the_most_voted_objects_it_l
     assert [p.object for p in pooled] == [80, 30, 1, 60] and pooled[2:] == placements[2:]
     assert (pooled[0].x, pooled[0].y) == pytest.approx((0.5, 0.55)) and pooled[1].x == pytest.approx(0.25)
     assert d["aggregation"] == "greedy_votes_pooled" and d["added"] == diag["added"]
+
+
+def test_greedy_votes_context_takes_the_length_of_the_persons_own_tables():
+    """`greedy_votes_context` by hand: the context tables' median count (rounded half to even) is the plan's length;
+    a longer greedy answer keeps its best-voted objects in its own order (ties: the earlier step), a shorter one is
+    lengthened by votes as greedy_votes_pooled does; without context tables, the samples' median."""
+    greedy = [U("plate", 80, 0.5, 0.5, 0), U("knife", 61, 0.1, 0.9, 0), U("fork", 30, 0.3, 0.5, 0)]
+    samples = [
+        [U("plate", 80, 0.4, 0.4, 0), U("cup", 1, 0.8, 0.3, 0), U("fork", 30, 0.2, 0.5, 0)],
+        [U("cup", 1, 0.6, 0.3, 0), U("fork", 30, 0.9, 0.5, 0), U("spoon", 50, 0.1, 0.1, 0)],
+        [U("cup", 1, 0.7, 0.3, 0), U("spoon", 50, 0.3, 0.1, 0)],
+    ]
+    pooled, _ = combine(samples, "unmarked", how="greedy_votes_pooled", anchor=greedy)  # median 3: never shortened
+    assert [p.object for p in pooled] == [80, 61, 30]
+    # votes of the greedy answer's objects: fork 30 2, plate 80 1, knife 61 0 -> two kept, in the greedy order
+    cut, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[2, 1, 3, 2])
+    assert [p.object for p in cut] == [80, 30] and cut == [pooled[0], pooled[2]]
+    assert d["aggregation"] == "greedy_votes_context" and d["length"] == 2 and d["length_from"] == "context"
+    assert d["dropped"] == [61] and d["added"] == []
+    # 4.5 rounds half to even -> 4: the greedy answer's 3 and the best-voted object it lacks (cup 1, 3 votes)
+    longer, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[4, 5])
+    assert [p.object for p in longer] == [80, 61, 30, 1] and longer[3].x == pytest.approx(0.7)
+    assert d["length"] == 4 and d["dropped"] == [] and [a["id"] for a in d["added"]] == [1]
+    same, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[])
+    assert same == pooled and d["length_from"] == "samples"
+    unparsed, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=None, context_counts=[1, 1])
+    assert [p.object for p in unparsed] == [1] and d["anchor"] == "unparsed"  # votes at the context's length
+    alone, d = combine([None], "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[2, 2])
+    assert [p.object for p in alone] == [80, 61] and not d["failed"]  # no sample parsed: the greedy answer's first

@@ -173,8 +173,20 @@ def test_predict_lengthens_the_greedy_answer_by_votes(tmp_path):
     assert [p.object for p in fork_pooled] == [fork, plate, cup] and fork_pooled[1:] == got[0].placements[1:]
     grid = Grid(8, 8)
     assert fork_pooled[0].x == pytest.approx(grid.decode_weighted([["H8"], ["C3"], ["C3"]])[0])
+    # context: each episode's plan as long as the median count of its two context tables (5, 4 or 3 here; the
+    # samples name 3 objects, so each plan has them all, and the length asked is the tables')
+    ctx = run_predict(None, base + [f"backend.path={first}", "aggregation=greedy_votes_context",
+                                    f"out={tmp_path / 'x' / 'predictions.jsonl'}"])
+    for pred, ep in zip(read_predictions(ctx, ds.catalog), episodes):
+        length = round(sum(len(ds.arrangement(ep.participant, t).placements) for t in ep.context) / 2)
+        assert pred.diagnostics["length"] == length and pred.diagnostics["length_from"] == "context"
+        assert [p.object for p in pred.placements] == [fork, plate, cup]
+    assert {read_predictions(ctx, ds.catalog)[i].diagnostics["length"] for i in range(len(episodes))} == {3, 4, 5}
     with pytest.raises(DegustaError, match="temperature: expected > 0 with aggregation greedy_votes"):
         run_predict(None, base + ["temperature=0", f"backend.path={answers}",
+                                  f"out={tmp_path / 'c' / 'predictions.jsonl'}"])
+    with pytest.raises(DegustaError, match="aggregation: expected one that needs no context tables with context 0"):
+        run_predict(None, base + ["context=0", "aggregation=greedy_votes_context", f"backend.path={answers}",
                                   f"out={tmp_path / 'c' / 'predictions.jsonl'}"])
     assert not (tmp_path / "c").exists()
 

@@ -82,7 +82,8 @@ def answer_table(summary: dict[str, dict]) -> list[str]:
                      f"{rate(s.get('forced_close_rate'))} |")
     return ["Answers: how many per episode and, for more than one, how they were combined (steps: the paper's "
             "per-step modes; votes: the most named objects; greedy_votes: one more, greedy answer lengthened by the "
-            "samples' votes; greedy_votes_pooled: its objects placed from every answer naming them, docs/prompting.md); "
+            "samples' votes; greedy_votes_pooled: its objects placed from every answer naming them; "
+            "greedy_votes_context: that at the context tables' median count, docs/prompting.md); "
             "the fraction that parsed; for a model decoded inside the answer grammar (every answer parses) "
             "the fraction its free decoding writes parseably (same model, same seeds: the grammar's free answers "
             "are generated wherever it changed one), comparable with free-text parse rates; and the fraction of "

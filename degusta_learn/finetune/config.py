@@ -149,7 +149,7 @@ class EvalConfig:
     """n > 1: how the answers become one plan, as predict's `aggregation` (steps: the paper's; votes: the objects
     most answers name, as many as the median answer's length; greedy_votes: one more, greedy answer lengthened
     by the samples' votes, a second `generate` call; greedy_votes_pooled: the same objects, each placed from every
-    answer naming it)."""
+    answer naming it; greedy_votes_context: that at the median count of the example's context tables)."""
     temperature: float | None = bounded(None, 0.0, 10.0)
     """Sampling temperature of the validation answers; null: 0 (greedy) at n = 1, 1.0 (predict's default) at
     n > 1. Samples are seeded by `seed` and the episode's position, so a validation is reproducible."""

@@ -44,6 +44,8 @@ class Example:
     answer: str
     participant: str = ""
     target: int = -1
+    context: tuple = ()
+    """The trials the prompt shows as context (aggregation greedy_votes_context takes their object counts)."""
     meta: dict = field(default_factory=dict)
     """What scoring needs beyond the answer text (perception examples: task and ground truth)."""
     followups: tuple = ()
@@ -106,7 +108,7 @@ class LiftedExamples:
     def example(self, i: int, ep) -> Example:
         """The example of item `i` (its target and answer) shown `ep`'s context."""
         return Example(episode=ep.id, prompt=self._prompt(ep), answer=self.answer(i), participant=ep.participant,
-                       target=ep.target)
+                       target=ep.target, context=tuple(ep.context))
 
     def prompt(self, i: int, epoch: int = 0):
         return self._prompt(self.episode(i, epoch))

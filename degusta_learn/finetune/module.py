@@ -166,7 +166,10 @@ class FinetuneModule(L.LightningModule):
             except AnswerParseError:
                 parsed.append(None)
         anchor = parsed.pop() if greedy is not None else None
-        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation, anchor=anchor)
+        counts = ([len(self.ds.arrangement(ex.participant, t).placements) for t in ex.context]
+                  if self.cfg.eval.aggregation == "greedy_votes_context" else None)  # the person's own counts
+        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation, anchor=anchor,
+                                   context_counts=counts)
         gt = self.ds.arrangement(ex.participant, ex.target)
         s = score_prediction(self.ds.catalog, gt, placements, diag["failed"])
         items = parsed[0] if len(parsed) == 1 else (

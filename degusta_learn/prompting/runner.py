@@ -81,8 +81,9 @@ class ZeroShotConfig(PredictConfig):
     id, the mode length); votes, the objects most answers name, as many as the median answer's length;
     greedy_votes, one more answer at temperature 0 (the greedy one) lengthened to the samples' median length by
     their most named objects it lacks; greedy_votes_pooled, the same objects, the greedy answer's each placed from
-    it and every sample naming it. Applied to the stored answers, so changing it re-uses the response cache
-    (greedy_votes and greedy_votes_pooled ask only for the greedy answers a cache lacks)."""
+    it and every sample naming it; greedy_votes_context, that at the median count of the episode's context tables.
+    Applied to the stored answers, so changing it re-uses the response cache (the greedy_votes kinds ask only for
+    the greedy answers a cache lacks)."""
     temperature: float = 1.0
     """Sampling temperature (the APIs' default 1.0; 0 makes the n samples near-identical)."""
     concurrency: int = 4
@@ -117,6 +118,9 @@ class ZeroShotConfig(PredictConfig):
                   ("temperature", self.temperature > 0 or self.aggregation not in ANCHORED,
                    f"> 0 with aggregation {self.aggregation} (its n answers are sampled, the greedy one is asked "
                    "apart)"),
+                  ("aggregation", self.aggregation != "greedy_votes_context" or self.context != 0,
+                   "one that needs no context tables with context 0 (greedy_votes_context takes its length from "
+                   "them)"),
                   ("max_retries", self.max_retries >= 0, ">= 0"), ("backoff", self.backoff >= 0, ">= 0"),
                   ("backoff_max", self.backoff_max >= 0, ">= 0"),
                   ("budget_usd", self.budget_usd is None or self.budget_usd >= 0, ">= 0"),
@@ -328,7 +332,10 @@ class ZeroShotRun:
             item_errors += [{"sample": i, "reason": r} for r in answer.item_errors]
         n = self.cfg.n
         anchor = parsed[n] if len(parsed) > n else None
-        placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.aggregation, anchor=anchor)
+        counts = ([len(self.ds.arrangement(ep.participant, t).placements) for t in ep.context]
+                  if self.cfg.aggregation == "greedy_votes_context" else None)  # the person's own counts
+        placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.aggregation, anchor=anchor,
+                                  context_counts=counts)
         diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": n,
                 "cached": cached, "responses": [s.text if s else None for s in samples[:n]],
                 **({"greedy_response": samples[n].text if samples[n] else None} if len(samples) > n else {}),
