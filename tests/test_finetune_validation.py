@@ -11,7 +11,7 @@ from finetune_support import GRID, dataset, examples, load, tiny_dir
 
 from degusta_learn.config import load_config
 from degusta_learn.finetune import module as fm
-from degusta_learn.finetune.config import FinetuneConfig
+from degusta_learn.finetune.config import DataConfig, FinetuneConfig
 from degusta_learn.metrics import score_prediction
 from degusta_learn.prompting.prompt import Completion
 from degusta_learn.vlm.generate import generate_answers, generate_batch
@@ -148,6 +148,10 @@ def test_greedy_votes_validation_needs_samples():
     assert EvalConfig(aggregation="greedy_votes", n=5).sampling_temperature == 1.0
     with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes_pooled lengthens a greedy answer"):
         EvalConfig(aggregation="greedy_votes_pooled", n=5, temperature=0.0)
+    context = EvalConfig(aggregation="greedy_votes_context", n=5)
+    assert FinetuneConfig(eval=context).data.val_context == 4
+    with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes_context takes its length from the"):
+        FinetuneConfig(eval=context, data=DataConfig(val_context=0))
 
 
 def test_validation_images_png_and_tensorboard(tmp_path):

@@ -217,6 +217,9 @@ class FinetuneConfig:
             raise DegustaError(f"trainer.precision: {self.trainer.precision} casts the trained weights to half "
                                f"precision (no fp32 master weights: small updates round away); use bf16-mixed "
                                f"(LoRA keeps its adapters in fp32 on a bf16 base; full keeps fp32 weights)")
+        if self.eval.aggregation == "greedy_votes_context" and self.data.val_context == 0:
+            raise DegustaError("eval.aggregation: greedy_votes_context takes its length from the context tables; "
+                               "data.val_context 0 has none (use greedy_votes_pooled)")
 
     @property
     def weights_dtype(self) -> str:
