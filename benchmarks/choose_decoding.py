@@ -106,9 +106,6 @@ def main() -> None:
     pop = {p.episode: p for p in spec.run(spec.config_cls(method="population_mean", dataset=args.dataset, out="",
                                                           split=args.split), ds, episodes)}
 
-    def counts(e) -> list[int]:
-        return [len(ds.arrangement(e.participant, t).placements) for t in e.context]
-
     def scores(preds) -> dict[str, np.ndarray]:
         return {k: np.array([getattr(s, k) for s in score_many(ds.catalog, gts, preds)], float) for k in METRICS}
 
@@ -119,7 +116,8 @@ def main() -> None:
         if missing:
             raise SystemExit(f"error: {path} lacks {len(missing)} of the {len(order)} {args.split} episodes "
                              f"(context {args.context}, seed {args.seed}; first: {missing[0]})")
-        ways = {e.id: decodings(by[e.id], ds.catalog, grid, args.samples, counts(e)) for e in episodes}
+        ways = {e.id: decodings(by[e.id], ds.catalog, grid, args.samples,
+                                   ds.object_counts(e.participant, e.context)) for e in episodes}
         names = [args.only] if args.only else WAYS
         runs.append({w: scores([dataclasses.replace(by[i], placements=ways[i][w]) for i in order]) for w in names})
     base = scores([pop[i] for i in order])

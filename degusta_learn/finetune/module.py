@@ -166,7 +166,7 @@ class FinetuneModule(L.LightningModule):
             except AnswerParseError:
                 parsed.append(None)
         anchor = parsed.pop() if greedy is not None else None
-        counts = ([len(self.ds.arrangement(ex.participant, t).placements) for t in ex.context]
+        counts = (self.ds.object_counts(ex.participant, ex.context)
                   if self.cfg.eval.aggregation == "greedy_votes_context" else None)  # the person's own counts
         placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation, anchor=anchor,
                                    context_counts=counts)

@@ -332,7 +332,7 @@ class ZeroShotRun:
             item_errors += [{"sample": i, "reason": r} for r in answer.item_errors]
         n = self.cfg.n
         anchor = parsed[n] if len(parsed) > n else None
-        counts = ([len(self.ds.arrangement(ep.participant, t).placements) for t in ep.context]
+        counts = (self.ds.object_counts(ep.participant, ep.context)
                   if self.cfg.aggregation == "greedy_votes_context" else None)  # the person's own counts
         placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.aggregation, anchor=anchor,
                                   context_counts=counts)

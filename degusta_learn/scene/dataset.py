@@ -80,6 +80,10 @@ class Dataset:
         except KeyError:
             raise DegustaError(f"no arrangement for participant {participant!r}, trial {trial}") from None
 
+    def object_counts(self, participant: str, trials) -> list[int]:
+        """How many objects each of `participant`'s `trials` places (e.g. an episode's context tables)."""
+        return [len(self.arrangement(participant, t).placements) for t in trials]
+
     def trials_of(self, participant: str) -> list[Arrangement]:
         return sorted((a for a in self.arrangements if a.participant == participant), key=lambda a: a.trial)
 
