@@ -10,19 +10,53 @@ Usage (CPU smoke run, a minute):
     degusta configs list                                 # the shipped configs; --config takes their names
 
 Every user mistake raises DegustaError: printed on one line as "degusta: error: ...", exit status 2.
+
+Exit codes (`ExitCode`; docs/reliability.md, "Exit codes"):
+    0    ok: everything ran and passed (also --help, --version)
+    2    user error: a DegustaError or a bad flag, one "degusta: error: ..." line; nothing (new) written
+    3    ran, but something it reports failed: the output is written and one "degusta: ..." line on stderr names
+         what failed (compare, quickstart: one or more methods failed, the report lists them and scores the
+         rest; train --dry-run: a check FAILS on this machine, the whole report is printed)
+    130  interrupted (Ctrl-C, SIGTERM): finished work is kept
+A verb returns its message (a str) or a `Result` (message + what failed); main() turns that into the status.
 """
 
 from __future__ import annotations
 
 import argparse
+import enum
 import os
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.config import MAX_SEED
 from degusta_learn.errors import DegustaError
 from degusta_learn.names import CONTEXT_LENGTHS, PROMPT_METHODS, SPLITS
+
+
+class ExitCode(enum.IntEnum):
+    """What `degusta` exits with (the module docstring and docs/reliability.md list which verbs use which)."""
+
+    OK = 0
+    """Everything ran and passed."""
+    USER_ERROR = 2
+    """A DegustaError or a bad flag: one `degusta: error: ...` line; nothing, or nothing new, written."""
+    PARTIAL = 3
+    """It ran and wrote its output, but something it reports failed (a method, a check on this machine)."""
+    INTERRUPTED = 130
+    """Ctrl-C or SIGTERM; finished work is kept."""
+
+
+@dataclass(frozen=True)
+class Result:
+    """What a verb reports when it can end in part failed: its message (stdout) and, when something failed, one
+    line naming it (stderr, after "degusta: "), which makes the exit status `ExitCode.PARTIAL`."""
+
+    message: str
+    failed: str = ""
+    """One line naming what failed; "" when nothing did (exit 0)."""
 
 
 def cmd_data_generate(args) -> str:
@@ -78,7 +112,8 @@ def cmd_predict(args) -> str:
     return f"wrote predictions to {out}" if out else "dry run: nothing written"
 
 
-def cmd_train(args) -> str:
+def cmd_train(args) -> str | Result:
+    from degusta_learn.dryrun import DryRunReport
     from degusta_learn.methods import run_train
 
     from degusta_learn.trainer import global_rank
@@ -86,7 +121,10 @@ def cmd_train(args) -> str:
     out = run_train(args.config, args.set, dry_run=args.dry_run)
     if global_rank() != 0:  # the other processes of a multi-process run say nothing (rank 0 reports)
         return ""
-    return f"training finished; outputs in {out}" if out else "dry run: nothing loaded, trained or written"
+    if isinstance(out, DryRunReport):  # the report is printed; a check that FAILS here makes it exit 3
+        return Result("dry run: nothing loaded, trained or written",
+                      failed=f"dry run: {out.failure_summary()}" if out.failures else "")
+    return f"training finished; outputs in {out}"
 
 
 def cmd_evaluate(args) -> str:
@@ -97,11 +135,12 @@ def cmd_evaluate(args) -> str:
     return f"wrote metrics.json, per_episode.csv and report.md to {out}"
 
 
-def cmd_compare(args) -> str:
+def cmd_compare(args) -> Result:
     from degusta_learn.evaluate.compare import run_compare
 
-    out = run_compare(args.config, args.set)
-    return f"wrote the comparison report to {out / 'report.md'} (and report.html)"
+    result = run_compare(args.config, args.set)
+    return Result(f"wrote the comparison report to {result.out / 'report.md'} (and report.html)",
+                  failed=result.failure_summary())
 
 
 def cmd_render_episode(args) -> str:
@@ -118,11 +157,13 @@ def cmd_render_catalog(args) -> str:
     return f"wrote the catalog contact sheet to {render_catalog(args.dataset, args.out, size=args.size)}"
 
 
-def cmd_quickstart(args) -> str:
+def cmd_quickstart(args) -> Result:
     from degusta_learn.evaluate.quickstart import run_quickstart
 
-    report = run_quickstart(args.out, small=args.small, with_api=args.with_api)
-    return f"quickstart finished: open {report / 'report.md'} (or {report / 'report.html'} in a browser)"
+    result = run_quickstart(args.out, small=args.small, with_api=args.with_api)
+    report = result.out
+    return Result(f"quickstart finished: open {report / 'report.md'} (or {report / 'report.html'} in a browser)",
+                  failed=result.failure_summary())
 
 
 def cmd_configs_list(args) -> str:
@@ -190,9 +231,21 @@ CONFIG_HELP = "a YAML file, or the name of a shipped config (degusta configs lis
 IMAGE_SIZE = _int_in(16, 4096)
 
 
+def version() -> str:
+    """The version of the running package (`degusta_learn.__version__`, the code imported: an installed
+    distribution's metadata may describe another copy than the one on sys.path)."""
+    from degusta_learn import __version__
+
+    return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="degusta", description="Personalized table setting: data, "
-                                     "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.")
+                                     "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.",
+                     epilog="exit status: 0 ok; 2 a user error (nothing new written); 3 it ran and wrote its "
+                            "output, but something it reports failed (compare/quickstart: a method; "
+                            "train --dry-run: a check FAILS on this machine); 130 interrupted")
+    parser.add_argument("--version", action="version", version=f"degusta {version()}")
     verbs = parser.add_subparsers(dest="verb", required=True)
 
     data = verbs.add_parser("data", help="generate, validate and cut datasets").add_subparsers(dest="data_verb", required=True)
@@ -287,27 +340,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one verb; returns its `ExitCode` (module docstring)."""
     try:
         args = build_parser().parse_args(argv)
-    except SystemExit as e:  # a flag error (one line printed) or --help: the status, not an exception
-        return e.code if isinstance(e.code, int) else 2
+    except SystemExit as e:  # a flag error (one line printed), --help or --version: the status, not an exception
+        return e.code if isinstance(e.code, int) else ExitCode.USER_ERROR
     func: Callable = args.func
     try:
-        message = func(args)
+        result = func(args)
     except DegustaError as e:
         from degusta_learn.prompting.backends.base import redact
 
         print(f"degusta: error: {redact(str(e))}", file=sys.stderr)  # a key pasted into a config never echoes
-        return 2
+        return ExitCode.USER_ERROR
     except KeyboardInterrupt:
         print("degusta: interrupted; finished work is kept (re-run to resume)", file=sys.stderr)
-        return 130
-    if message:
+        return ExitCode.INTERRUPTED
+    if not isinstance(result, Result):
+        result = Result(result or "")
+    if result.message:
         try:
-            print(message)
+            print(result.message)
         except BrokenPipeError:  # e.g. `degusta configs list | head`: the reader took what it wanted
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
-    return 0
+    if result.failed:  # one line on stderr; the report itself says more
+        from degusta_learn.prompting.backends.base import redact
+
+        print(f"degusta: {redact(' '.join(result.failed.split()))}", file=sys.stderr)
+        return ExitCode.PARTIAL
+    return ExitCode.OK
 
 
 if __name__ == "__main__":

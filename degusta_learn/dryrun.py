@@ -4,16 +4,27 @@ The report lines every trainer kind shares (steps per epoch, the trainer check o
 simple memory model (`estimate_memory`, `transformer_activations`): an ESTIMATE, not checked against a GPU.
 Each kind's `dry_run` (methods.TrainerSpec) adds its own lines (model size, tokens or slots per example).
 
+A check that FAILS on this machine (`fails`: a GPU config on a CPU login node) is a report line, and is also
+recorded in the `DryRunReport` of the `recording()` block around the dry run: `methods.run_train` returns that
+report, so `degusta train --dry-run` exits 3 when a check FAILS without any kind returning anything or any line
+being parsed.
+
 Example:
     lines = [("model", "...")] + dry_run_trainer_lines(cfg.trainer, monitors, n_examples=200, batch_size=4)
     print_dry_run("dry run of kind finetune", lines)
+
+    with recording() as report:   # what methods.run_train does around a kind's dry_run
+        spec.dry_run(cfg)
+    report.failures               # [("trainer check", "trainer.accelerator: 'gpu' but no CUDA GPU ...")]
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass, field
 
 from degusta_learn.errors import MachineMismatch
 from degusta_learn.trainer import TrainerConfig, check_trainer, effective_precision, world_size
@@ -126,10 +137,48 @@ def steps_per_epoch(n_examples: int, batch_size: int, cfg: TrainerConfig) -> tup
     return batches, math.ceil(batches / cfg.accumulate_grad_batches)
 
 
+@dataclass
+class DryRunReport:
+    """What a dry run found that this machine cannot run: (report label, reason) of each check that FAILS."""
+
+    failures: list[tuple[str, str]] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def failure_summary(self) -> str:
+        """One line naming each failing check ("" when none fails)."""
+        return "; ".join(f"{label} FAILS on this machine: {' '.join(reason.split())}" for label, reason in self.failures)
+
+
+_REPORT: ContextVar[DryRunReport | None] = ContextVar("degusta_dry_run_report", default=None)
+
+
+@contextmanager
+def recording() -> Iterator[DryRunReport]:
+    """Collect the checks that `fails` reports inside this block (nested blocks each get their own)."""
+    report = DryRunReport()
+    token = _REPORT.set(report)
+    try:
+        yield report
+    finally:
+        _REPORT.reset(token)
+
+
+def fails(label: str, reason: str) -> tuple[str, str]:
+    """The report line of a check that FAILS on this machine; recorded in the current `recording()` block."""
+    report = _REPORT.get()
+    if report is not None:
+        report.failures.append((label, reason))
+    return label, f"FAILS on this machine: {reason}"
+
+
 def dry_run_trainer_lines(cfg: TrainerConfig, monitors: Iterable[str] | None, n_examples: int,
                           batch_size: int) -> list[tuple[str, str]]:
     """The report lines every kind shares: steps per epoch, the run's length, the trainer check on this machine
-    (what this machine lacks is reported as FAILS; a config mistake, such as an unknown monitor, raises)."""
+    (what this machine lacks is reported as FAILS, see `fails`; a config mistake, such as an unknown monitor,
+    raises)."""
     batches, steps = steps_per_epoch(n_examples, batch_size, cfg)
     world = world_size(cfg)
     per = f"{n_examples} examples / ({batch_size} per batch x {world} process{'es' if world > 1 else ''})"
@@ -145,7 +194,7 @@ def dry_run_trainer_lines(cfg: TrainerConfig, monitors: Iterable[str] | None, n_
         lines.append(("trainer check", f"ok on this machine ({cfg.accelerator}, devices {cfg.devices}, "
                                        f"num_nodes {cfg.num_nodes}, strategy {cfg.strategy}, {precision})"))
     except MachineMismatch as e:  # a GPU config checked on a login node: say so, the rest of the report holds
-        lines.append(("trainer check", f"FAILS on this machine: {e}"))
+        lines.append(fails("trainer check", str(e)))
     return lines
 
 

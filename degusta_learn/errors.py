@@ -2,7 +2,8 @@
 
 Anything a user can cause (a malformed dataset, a bad config key, an unknown method) raises
 `DegustaError` with a message that names the file, line, field or key. The CLI prints that message on
-one line and exits non-zero; every other exception is a bug and keeps its traceback.
+one line and exits 2 (degusta_learn/cli.py lists every exit code); every other exception is a bug and keeps
+its traceback.
 """
 
 
@@ -12,5 +13,6 @@ class DegustaError(Exception):
 
 class MachineMismatch(DegustaError):
     """A valid config that this machine cannot run: no GPU for a GPU config, too few devices, a logger package
-    not installed, a multi-node run not started by a launcher. `train --dry-run` reports it and exits 0 (a GPU
-    config checked on a login node); a config mistake (`DegustaError`) fails the dry run like the real one."""
+    not installed, a multi-node run not started by a launcher. `train --dry-run` reports it as a check that FAILS,
+    prints the rest of the report and exits 3 (a GPU config checked on a login node: the report holds, this machine
+    cannot run it); a config mistake (`DegustaError`) fails the dry run like the real one (exit 2)."""

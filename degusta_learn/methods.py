@@ -16,7 +16,7 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from degusta_learn.config import _show, apply_overrides, check_choices, from_dict, read_yaml, seed_field
 from degusta_learn.errors import DegustaError
@@ -31,6 +31,9 @@ from degusta_learn.scene import (
     read_episodes,
     write_predictions,
 )
+
+if TYPE_CHECKING:
+    from degusta_learn.dryrun import DryRunReport
 
 
 @dataclass
@@ -79,7 +82,8 @@ class TrainerSpec:
     run: Callable[[Any], Path]
     description: str = ""
     dry_run: Callable[..., None] | None = None
-    """(config, log) -> None: print sizes, token budget, steps and memory; load no weights, write nothing."""
+    """(config, log) -> None: print sizes, token budget, steps and memory; load no weights, write nothing. A check
+    this machine fails is a `dryrun.fails` line (as `dryrun.dry_run_trainer_lines` makes): `run_train` collects it."""
 
 
 METHODS: dict[str, str] = {
@@ -216,17 +220,22 @@ def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry
 
 
 def run_train(path: str | Path | None, overrides: list[str] | None = None, dry_run: bool = False,
-              log=print) -> Path | None:
+              log=print) -> Path | DryRunReport:
     """`degusta train`: build the configured trainer and run it; returns its output folder.
 
     With `dry_run`, the trainer kind's `dry_run` prints the model size, trainable parameters, the
     per-example budget against its limit, steps per epoch and a predicted memory, loading no weights and
-    writing nothing; it refuses (DegustaError naming the key) a config whose examples cannot fit. Returns None.
+    writing nothing; it refuses (DegustaError naming the key) a config whose examples cannot fit. Returns
+    the `dryrun.DryRunReport` of the checks that FAIL on this machine (empty `failures`: none; the CLI
+    then exits 3).
     """
     spec, cfg = build_config(path, overrides, "kind", get_trainer)
     if dry_run:
+        from degusta_learn.dryrun import recording
+
         if spec.dry_run is None:
             raise DegustaError(f"kind: {cfg.kind!r} has no dry run")
-        spec.dry_run(cfg, log=log)
-        return None
+        with recording() as report:  # every kind's FAILS line (dryrun.fails) lands here
+            spec.dry_run(cfg, log=log)
+        return report
     return spec.run(cfg)

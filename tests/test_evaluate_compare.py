@@ -38,7 +38,9 @@ def test_compare_matches_evaluate_and_links_resolve(setup, small_dataset_dir, tm
     cfg = CompareConfig(dataset=str(small_dataset_dir), out=str(tmp_path / "cmp"), episodes=str(tmp_path / "eps.jsonl"),
                         methods=[MethodEntry("a", predictions=str(a)), MethodEntry("b", predictions=str(b))],
                         n_bootstrap=200, qualitative=1, image_size=128)
-    out = compare(cfg, log=lambda m: None)
+    result = compare(cfg, log=lambda m: None)
+    out = result.out
+    assert result.failures == {} and result.failure_summary() == ""
     assert main(["evaluate", "--dataset", str(small_dataset_dir), "--predictions", str(a), str(b),
                  "--out", str(tmp_path / "ev"), "--bootstrap", "200"]) == 0
     cmp_metrics = json.loads((out / "metrics.json").read_text())["methods"]
@@ -73,7 +75,10 @@ def test_a_failing_method_is_reported_and_the_rest_written(setup, small_dataset_
     cfg = CompareConfig(dataset=str(small_dataset_dir), out=str(tmp_path / "cmp"), episodes=str(tmp_path / "eps.jsonl"),
                         methods=[MethodEntry("a", predictions=str(a)), MethodEntry("broken", config=str(bad_cfg))],
                         n_bootstrap=100, qualitative=0, image_size=96)
-    out = compare(cfg, log=lambda m: None)
+    result = compare(cfg, log=lambda m: None)
+    out = result.out
+    assert result.failed == ["broken"] and "unknown method 'nope'" in result.failures["broken"]
+    assert result.failure_summary().startswith("1 of 2 methods failed: broken;")
     metrics = json.loads((out / "metrics.json").read_text())
     assert "broken" in metrics["failed_methods"] and "a" in metrics["methods"]
     assert "unknown method 'nope'" in (out / "report.md").read_text()
@@ -107,7 +112,7 @@ def test_a_one_object_method_is_marked_and_never_ranked_first(setup, small_datas
                                  MethodEntry("mostly_failed", predictions=str(tmp_path / "mostly.jsonl")),
                                  MethodEntry("b", predictions=str(b)), MethodEntry("a", predictions=str(a))],
                         n_bootstrap=100, qualitative=1, image_size=96)
-    out = compare(cfg, log=lambda m: None)
+    out = compare(cfg, log=lambda m: None).out
     metrics = json.loads((out / "metrics.json").read_text())
     m = metrics["methods"]
     assert m["lonely"]["degenerate"] is True and m["lonely"]["frac_le2_matched"] == 1.0

@@ -15,8 +15,9 @@ to delete the file (answers already in the response cache are reused, not paid a
 safe file names (letters, digits, `.`, `_`, `-`), so nothing is written outside `out`.
 Every method must cover exactly the same episodes, and every record must agree with its episode
 (scoring.check_records): otherwise the whole comparison is refused, naming the file, line and field. A method whose run fails, or whose every
-prediction failed, is reported as failed; the rest of the report is written. When every method failed,
-compare exits with an error and writes no report.
+prediction failed, is reported as failed; the rest of the report is written, and `compare` returns a
+`Comparison` naming the failed methods (`degusta compare` then exits 3). When every method failed, compare
+exits with an error (exit 2) and writes no report.
 The report lists the methods best first by mean set RMSD, degenerate methods last and marked
 (evaluate/summary.py, docs/metrics.md); the paired comparisons and the qualitative reference follow
 that order.
@@ -151,7 +152,32 @@ class CompareConfig:
                                    "give each length once")
 
 
-def run_compare(path: str | Path, overrides: list[str] | None = None, log=print) -> Path:
+@dataclass(frozen=True)
+class Comparison:
+    """What `compare` wrote: the report folder, and the methods that failed with their reasons (in config order;
+    the report lists them too). Empty `failures`: every method was scored."""
+
+    out: Path
+    """The report folder (report.md, report.html, metrics.json, ...)."""
+    failures: dict[str, str] = field(default_factory=dict)
+    """Method name -> why it failed (the DegustaError's message)."""
+    methods: int = 0
+    """How many methods the comparison had (scored + failed)."""
+
+    @property
+    def failed(self) -> list[str]:
+        """The names of the methods that failed."""
+        return list(self.failures)
+
+    def failure_summary(self) -> str:
+        """One line naming the failed methods ("" when none failed)."""
+        if not self.failures:
+            return ""
+        return (f"{len(self.failures)} of {self.methods} methods failed: {', '.join(self.failures)}; the report "
+                f"lists why and scores the rest: {self.out / 'report.md'}")
+
+
+def run_compare(path: str | Path, overrides: list[str] | None = None, log=print) -> Comparison:
     return compare(load_config(CompareConfig, path, overrides), log=log, config_path=path)
 
 
@@ -370,8 +396,11 @@ def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, conf
             refuse_overwriting_inputs(path, own, key="out", datasets=[cfg.dataset])
 
 
-def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None) -> Path:
-    """Run/collect every method, score them on the same episodes and write the report folder."""
+def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None) -> Comparison:
+    """Run/collect every method, score them on the same episodes and write the report folder.
+
+    Returns the report folder and the methods that failed (each is logged and listed in the report); raises
+    DegustaError, writing nothing, when every method failed or the comparison itself is refused."""
     from degusta_learn.evaluate.compare_report import write_compare_report
 
     out = check_target(cfg.out, COMPARISON)  # a bad `out` is refused before anything runs
@@ -406,4 +435,4 @@ def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None
         write_compare_report(dataclasses.replace(cfg, out=str(tmp)), ds, episodes, rows, summary, paired, failures,
                              predictions, curve, log)
     log(f"[compare] report: {out / 'report.md'} (HTML: {out / 'report.html'})")
-    return out
+    return Comparison(out, failures, len(cfg.methods))
