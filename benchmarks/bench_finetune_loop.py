@@ -117,10 +117,10 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     from degusta_learn.finetune.lora import LoraConfig, apply_lora
-    from degusta_learn.vlm.load import offline
+    from degusta_learn.vlm.load import quiet_transformers
     from degusta_learn.scene import load_dataset
 
-    offline()
+    quiet_transformers()
     ds = load_dataset(args.dataset)
     cache = Path(tempfile.mkdtemp(prefix="degusta-bench-tiny-"))
     rows = []

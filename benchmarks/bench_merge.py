@@ -8,7 +8,7 @@ falls on both alike; the ratio of their total times is the result. Greedy answer
 flips a near-tie.
 
 Usage:
-    python benchmarks/bench_merge.py --adapter RUN/adapter [--base checkpoints/tiny_vlm_base] [--episodes 12]
+    python benchmarks/bench_merge.py --adapter RUN/adapter [--base tiny_vlm_base] [--episodes 12]
         [--n 5 --temperature 1.0]
 """
 
@@ -23,7 +23,7 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--base", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--base", default="tiny_vlm_base")
     ap.add_argument("--adapter", required=True, help="a fine-tune's adapter folder (RUN/adapter)")
     ap.add_argument("--dataset", default="data/naturalistic")
     ap.add_argument("--episodes", type=int, default=12)

@@ -1,6 +1,6 @@
 """Perception of the tiny base VLM on freshly rendered held-out scenes and marked-object sheets.
 
-Scores `checkpoints/tiny_vlm_base` (or --model) on perception questions drawn from a seed the model never
+Scores the shipped base `tiny_vlm_base` (or --model) on perception questions drawn from a seed the model never
 trained or validated on: object-set F1 (type and id), exact cell set per named object, direction
 accuracy (plates left out: their direction cannot be seen), GoMO mark-id accuracy, cell IoU and the
 parse rate, overall and by the number of scenes in the prompt. Constrained decoding, greedy, one answer
@@ -27,7 +27,7 @@ from pathlib import Path
 os.environ["HF_HUB_OFFLINE"] = "1"
 
 BENCH_SEED = 2_000_003  # training uses seed 0 and validation seed 1,000,003: never these examples
-SHIPPED_BASE = "checkpoints/tiny_vlm_base"
+SHIPPED_BASE = "tiny_vlm_base"
 SHIPPED_CURVE = "docs/images/base_perception_curve.png"  # its figure in the docs
 
 
@@ -60,9 +60,9 @@ def plot_curve(curve: list[dict], out: Path) -> Path | None:
 def curve_path(model: str, out: str) -> str:
     """Where the training curve goes by default: the docs' figure for the shipped base, else under `out` (a pilot
     model's curve never replaces the shipped base's figure)."""
-    from degusta_learn.shipped import BASE_DIR
+    from degusta_learn.shipped import is_shipped_base
 
-    if Path(model).resolve() == BASE_DIR:
+    if is_shipped_base(model):
         return SHIPPED_CURVE
     return str(Path(out) / "perception_curve.png")
 

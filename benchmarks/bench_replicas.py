@@ -110,7 +110,9 @@ def token_stats(name: str, over: list[str]) -> dict:
     from degusta_learn.finetune.config import FinetuneConfig
     from degusta_learn.vlm.inputs import ChatFormat
     from degusta_learn.vlm.load import load_processor
-    from degusta_learn.finetune.train import build_examples, count_tokens, meta_model, set_budget
+    from degusta_learn.finetune.train import build_examples
+    from degusta_learn.finetune.token_count import count_tokens, set_budget
+    from degusta_learn.finetune.dry_run import meta_model
     from degusta_learn.methods import run_train
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset

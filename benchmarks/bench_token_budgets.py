@@ -23,7 +23,9 @@ def budgets(config: str, reference: Path, dataset: str) -> list[dict]:
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.finetune.train import build_examples, count_tokens, meta_model, set_budget
+    from degusta_learn.finetune.train import build_examples
+    from degusta_learn.finetune.token_count import count_tokens, set_budget
+    from degusta_learn.finetune.dry_run import meta_model
     from degusta_learn.names import CONTEXT_LENGTHS, PROMPT_METHODS
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset

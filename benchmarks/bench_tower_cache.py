@@ -25,7 +25,7 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dataset", default="data/naturalistic")
-    ap.add_argument("--base", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--base", default="tiny_vlm_base")
     ap.add_argument("--batches", type=int, default=10, help="timed batches per mode")
     ap.add_argument("--epoch-steps", type=int, default=None, help="batches of the hit-rate walk (default: an epoch)")
     ap.add_argument("--threads", type=int, default=2)

@@ -84,9 +84,9 @@ def run_name(mode: str, seed: int) -> str:
 def curve_path(args) -> str:
     """Where the learning curve goes by default: the docs' figure for the documented run (the shipped base, all test
     episodes, no config overrides), else under --out (a pilot's curve never replaces the docs' figure)."""
-    from degusta_learn.shipped import BASE_DIR
+    from degusta_learn.shipped import is_shipped_base
 
-    documented = (Path(args.base).resolve() == BASE_DIR and args.episodes is None
+    documented = (is_shipped_base(args.base) and args.episodes is None
                   and not args.overrides and not args.predict_overrides)
     return "docs/images/vlm_learning_curve.png" if documented else str(Path(args.out) / "learning_curve.png")
 
@@ -94,7 +94,7 @@ def curve_path(args) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--dataset", default="data/naturalistic")
-    ap.add_argument("--base", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--base", default="tiny_vlm_base")
     ap.add_argument("--out", default="runs/bench_vlm")
     ap.add_argument("--episodes", type=int, default=None, help="only the first N test episodes (default: all 200)")
     ap.add_argument("--modes", nargs="+", default=["lora", "full"], choices=["lora", "full"])

@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dataset", type=Path, required=True)
     ap.add_argument("--adapter", required=True, help="the fine-tune's adapter folder")
-    ap.add_argument("--base", default="checkpoints/tiny_vlm_base")
+    ap.add_argument("--base", default="tiny_vlm_base")
     ap.add_argument("--config", default="configs/finetune_tiny_base_cpu.yaml", help="the fine-tune's config (prompts)")
     ap.add_argument("--episodes", type=int, default=200, help="the first N test episodes at context 4")
     ap.add_argument("--last", type=int, default=6, help="the last row pools this item index and beyond")

@@ -1,4 +1,4 @@
-"""The configs shipped inside the package: list them, find one by name, copy one out to edit.
+"""What ships inside the package: the configs (list them, find one by name, copy one out to edit) and the models.
 
 Usage:
     degusta configs list                             # every shipped config and its one-line purpose
@@ -7,7 +7,8 @@ Usage:
 
 The files live in `degusta_learn/configs/` (package data, installed by a plain `pip install .`); a source
 checkout also reaches them as `configs/`, so `--config configs/learned_cpu.yaml` works in the checkout and,
-through the name, from any other folder.
+through the name, from any other folder. The shipped models live in `degusta_learn/shipped_models/`
+(package data too); a config names one by its folder name (`model: tiny_vlm_base`), see vlm/hub.py.
 """
 
 from __future__ import annotations
@@ -23,12 +24,33 @@ SHIPPED_DIR = Path(__file__).resolve().parent / "configs"
 PURPOSE_CHARS = 110  # a purpose longer than this is cut at a word boundary and ends with "…"
 
 
-BASE_DIR = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny_vlm_base"
-"""The perception-pretrained tiny base VLM a source checkout ships (configs/pretrain_tiny_vlm_cpu.yaml built it)."""
+MODELS_DIR = Path(__file__).resolve().parent / "shipped_models"
+"""The models shipped inside the package (package data, like the configs): every install has them."""
+BASE_NAME = "tiny_vlm_base"
+BASE_DIR = MODELS_DIR / BASE_NAME
+"""The perception-pretrained tiny base VLM (configs/pretrain_tiny_vlm_cpu.yaml built it); configs name it
+`tiny_vlm_base`."""
+
+
+def shipped_model_names() -> list[str]:
+    """The names of the shipped models (their folder names), sorted."""
+    return sorted(p.name for p in MODELS_DIR.iterdir() if (p / "config.json").is_file()) if MODELS_DIR.is_dir() else []
+
+
+def shipped_model(name: str) -> Path | None:
+    """The folder of the shipped model `name` (e.g. "tiny_vlm_base"), or None if no shipped model has that name."""
+    return MODELS_DIR / name if name in shipped_model_names() else None
+
+
+def is_shipped_base(name: str | Path) -> bool:
+    """Whether a model name or folder is the shipped tiny base (its name, or its folder by any path)."""
+    path = Path(name).expanduser()
+    folder = path if path.is_dir() else shipped_model(str(name))  # a folder wins, as in vlm.hub.resolve_model
+    return folder is not None and folder.resolve() == BASE_DIR.resolve()
 
 
 def shipped_base() -> Path | None:
-    """The shipped tiny base's folder, or None where it is absent (an installed wheel carries no checkpoints)."""
+    """The shipped tiny base's folder, or None where its weights are absent (a broken install)."""
     return BASE_DIR if (BASE_DIR / "config.json").is_file() and (BASE_DIR / "model.safetensors").is_file() else None
 
 

@@ -1,11 +1,20 @@
-"""Shared fixtures: a small hand-built dataset (no generator needed) and its folder on disk."""
+"""Shared fixtures: a small hand-built dataset (no generator needed) and its folder on disk.
+
+The suite never downloads: Hugging Face offline mode is set here, before any test imports huggingface_hub
+(which reads it once), and every subprocess a test starts inherits it. The toolkit itself never sets it.
+"""
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
+import os
 
-from degusta_learn.scene import Arrangement, Dataset, Placement, default_catalog, default_tables, save_dataset
+os.environ["HF_HUB_OFFLINE"] = "1"
+os.environ["TRANSFORMERS_OFFLINE"] = "1"
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from degusta_learn.scene import Arrangement, Dataset, Placement, default_catalog, default_tables, save_dataset  # noqa: E402
 
 
 def make_small_dataset(n_participants: int = 10, n_trials: int = 5, seed: int = 0) -> Dataset:

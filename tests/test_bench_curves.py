@@ -22,3 +22,9 @@ def test_only_the_documented_fine_tuning_run_writes_the_learning_curve_figure():
     for change in ({"base": "/work/pilots/base_tr3"}, {"episodes": 20}, {"overrides": ["data.context_answers=true"]},
                    {"predict_overrides": ["backend.on_repeat=stop"]}):
         assert bench.curve_path(Namespace(**{**documented, **change})) == "runs/b/learning_curve.png", change
+
+
+def test_the_shipped_base_by_name_is_the_documented_run(tmp_path, monkeypatch):
+    bench = load_benchmark("bench_perception")
+    monkeypatch.chdir(tmp_path)
+    assert bench.curve_path("tiny_vlm_base", "runs/x") == "docs/images/base_perception_curve.png"

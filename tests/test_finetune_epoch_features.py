@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import finetune_support as fs
 import pytest
 import torch
@@ -96,7 +98,7 @@ def _padding(lengths, order, batch_size):
 
 def test_length_grouped_batches_pad_less_than_random_ones():
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.train import count_tokens
+    from degusta_learn.finetune.token_count import count_tokens
     from degusta_learn.vlm.inputs import ChatFormat
 
     model, processor = fs.load("idefics3")
@@ -104,6 +106,9 @@ def test_length_grouped_batches_pad_less_than_random_ones():
     train, _ = _examples(contexts=(0, 2, 4))
     lengths = [c["total"] for c in count_tokens(train, collator)]
     assert max(lengths) > 1.5 * min(lengths)
+    cfg = _config(contexts=(0, 2, 4))
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, group_by_length=True))
+    assert train_sampler(cfg, train, collator)(1, 0).lengths == lengths  # the run's own count (token_budget)
     grouped = TrainSampler(train, 0, lengths=lengths, batch_size=4)
     plain = TrainSampler(train, 0)
     for epoch in range(3):

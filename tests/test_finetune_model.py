@@ -77,12 +77,16 @@ def test_unloadable_model_id_fails_fast_naming_the_key(tmp_path):
 
 
 def test_a_relative_model_path_not_found_says_where_it_was_looked_for(tmp_path, monkeypatch):
-    # `checkpoints/tiny_vlm_base` run from another folder: one slash reads as a hub id; say the folder too
+    # `checkpoints/tiny_vlm_base` run from another folder: one slash reads as a hub id; say the folder too, and
+    # that the shipped base is named by its name alone
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(DegustaError, match=r"backend.model: 'checkpoints/tiny_vlm_base' is neither .*as a folder it "
-                                           r"would be .*checkpoints/tiny_vlm_base: a relative path is read from the "
-                                           r"current directory"):
+    with pytest.raises(DegustaError, match=r"backend.model: 'checkpoints/tiny_vlm_base' is not in the local Hugging "
+                                           r"Face cache .*as a folder it would be .*checkpoints/tiny_vlm_base: a "
+                                           r"relative path is read from the current directory \(the shipped model "
+                                           r"'tiny_vlm_base' is named by its name alone"):
         load_vlm("checkpoints/tiny_vlm_base", key="backend.model")
+    with pytest.raises(DegustaError, match=r"model folder ./tiny_vlm_base not found \(the shipped model "):
+        load_vlm("./tiny_vlm_base")
 
 
 def test_adapter_folder_must_be_a_peft_adapter(tmp_path):
@@ -143,12 +147,12 @@ def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_
 ])
 def test_a_corrupt_json_file_of_a_model_folder_is_named(tmp_path, name, content, message):
     """The libraries' errors named no file (JSONDecodeError), or were an AttributeError on a list."""
-    from degusta_learn.vlm.load import check_model_source
+    from degusta_learn.vlm.hub import resolve_model
 
     (tmp_path / "config.json").write_text('{"model_type": "idefics3"}')
     (tmp_path / name).write_bytes(content)
     with pytest.raises(DegustaError, match=re.escape(f"backend.model: {tmp_path / name}: {message.split(': ', 1)[1]}")):
-        check_model_source(str(tmp_path), "backend.model")
+        resolve_model(str(tmp_path), "backend.model")
 
 
 @pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])

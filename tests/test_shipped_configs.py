@@ -168,14 +168,50 @@ def test_configs_list_into_a_closed_pipe_is_quiet():
     assert proc.wait(timeout=60) == 0 and err == ""
 
 
+def venv_seeing_these_packages(venv: Path) -> Path:
+    """A fresh venv (its python returned) that sees the packages of the interpreter running the tests, whether that
+    is itself a venv or a machine-wide install: `--system-site-packages` would see only the base interpreter's. The
+    outer site-packages are appended by a .pth file, so what is installed into the new venv comes first, and the
+    outer .pth files (an editable install of degusta_learn among them) are not run."""
+    import site
+    import sysconfig
+
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    inner = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                           capture_output=True, text=True, check=True).stdout.strip()
+    outer = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"], *site.getsitepackages()])
+    Path(inner, "outer_packages.pth").write_text("".join(f"{p}\n" for p in outer if Path(p).is_dir()))
+    return python
+
+
+def test_a_venv_made_for_a_test_sees_the_test_interpreters_packages(tmp_path):
+    python = venv_seeing_these_packages(tmp_path / "venv")
+    done = subprocess.run([str(python), "-c", "import PIL, torch, yaml; import sys; print(sys.prefix)"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert Path(done.stdout.strip()).resolve() == (tmp_path / "venv").resolve()
+    where = subprocess.run([str(python), "-c", "import importlib.util as u; print(u.find_spec('degusta_learn'))"],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=120).stdout
+    assert "None" in where, where  # the checkout's editable install does not leak in: the wheel is what is tested
+
+
+def test_the_wheel_holds_the_shipped_base_with_its_card(wheel):
+    with zipfile.ZipFile(wheel) as z:
+        names = set(z.namelist())
+        card = z.read("degusta_learn/shipped_models/tiny_vlm_base/README.md").decode()
+    for name in ("config.json", "model.safetensors", "tokenizer.json", "processor_config.json", "degusta_base.json"):
+        assert f"degusta_learn/shipped_models/tiny_vlm_base/{name}" in names, name
+    assert card.startswith("---\n") and "pipeline_tag: image-text-to-text" in card
+
+
 @pytest.mark.slow
 def test_quickstart_small_end_to_end_from_a_non_editable_install(wheel, tmp_path):
     """The main job at a reduced size, as a user gets it: `pip install` of the wheel (not -e) into a fresh venv, then
     `degusta quickstart --small` in another folder: every method, one report, every linked file present, every
     config it ran written beside the results. (One run of the quickstart for both: it is the suite's slowest step.)"""
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)], check=True)
-    python = venv / "bin" / "python"
+    python = venv_seeing_these_packages(venv)
     subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-deps", "--no-index",
                     "--force-reinstall", str(wheel)], check=True)
     work = tmp_path / "elsewhere"
@@ -196,11 +232,14 @@ def test_quickstart_small_end_to_end_from_a_non_editable_install(wheel, tmp_path
     assert "export OPENAI_API_KEY" in done.stdout  # how to add the GPT-4o rows
     metrics = json.loads((report / "metrics.json").read_text())
     assert set(metrics["methods"]) == {"random", "population_mean", "copy_nearest", "consensus", "oracle", "learned",
-                                       "tiny_vlm_zeroshot", "tiny_vlm_finetuned"}
+                                       "tiny_base_zeroshot", "tiny_base_finetuned"}
+    assert "LoRA fine-tuning the shipped tiny base VLM (tiny_vlm_base" in done.stdout  # never a random-weight stand-in
+    ran = (work / "quickstart" / "configs" / "predict_hf_base_finetuned.yaml").read_text()
+    assert "model: tiny_vlm_base" in ran
     assert not metrics["failed_methods"]
     text = (report / "report.md").read_text()
     for link in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text):
         assert (report / link).is_file(), link
     # Every config it ran is written beside the results, so each step can be re-run by hand.
     assert {p.name for p in (work / "quickstart" / "configs").glob("*.yaml")} >= {"learned_cpu.yaml",
-                                                                                  "finetune_tiny_cpu.yaml"}
+                                                                                  "finetune_tiny_base_cpu.yaml"}

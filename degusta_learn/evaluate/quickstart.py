@@ -8,11 +8,9 @@ Steps (each prints what it does; a re-run reuses what an interrupted run finishe
   1. generate the SYNTHETIC naturalistic dataset;
   2. pick the episodes: 20 test participants, one target trial each, at context 0, 2 and 4 (60);
   3. train the learned slot model (configs/learned_cpu.yaml, about 2 minutes);
-  4. LoRA-fine-tune the shipped tiny base VLM (checkpoints/tiny_vlm_base, pretrained here on perception only;
-     configs/finetune_tiny_base_cpu.yaml cut to QUICK_FINETUNE: half an epoch, ~3 minutes) on the train
-     participants;
-     with --small, or where the base is absent (an installed wheel), a random-weight tiny VLM
-     (configs/finetune_tiny_cpu.yaml): the pipeline, not a result;
+  4. LoRA-fine-tune the shipped tiny base VLM (`tiny_vlm_base`, package data of every install, pretrained here on
+     perception only; configs/finetune_tiny_base_cpu.yaml cut to QUICK_FINETUNE: half an epoch, ~3 minutes) on
+     the train participants (with --small, four steps: the pipeline, not a result);
   5. compare heuristic baselines, the oracle, the learned model, and that VLM zero-shot and fine-tuned
      through the `hf` backend (plus zero-shot GPT-4o MOGMA with --with-api) in one report.
 
@@ -24,6 +22,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -32,7 +31,11 @@ from degusta_learn.config import apply_overrides, read_yaml
 from degusta_learn.fileio import atomic_write_text
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.scene import Episode, load_dataset, make_episodes, participants_in, write_episodes
-from degusta_learn.shipped import BASE_DIR, shipped_base, shipped_config
+from degusta_learn.errors import DegustaError
+from degusta_learn.shipped import BASE_DIR, BASE_NAME, shipped_base, shipped_config
+
+if TYPE_CHECKING:
+    from degusta_learn.evaluate.compare import Comparison
 
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
 
@@ -64,7 +67,8 @@ def quickstart_episodes(ds, seed: int = 0, per_participant: int = 1, participant
     return chosen
 
 
-def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api: bool = False, log=print) -> Path:
+def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api: bool = False, log=print) -> Comparison:
+    """Every step above; returns step 5's `Comparison` (the report folder and the methods that failed)."""
     from degusta_learn.evaluate.compare import CompareConfig, MethodEntry, compare
     from degusta_learn.methods import run_train
     from degusta_learn.synth import generate_dataset
@@ -107,27 +111,23 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
                                                 f"out={runs / 'learned' / 'predictions.jsonl'}"], "degusta predict")
     entries.append(MethodEntry(name="learned", config=str(path)))
 
-    base = None if small else shipped_base()
-    if base is not None:
-        step(f"4/5 LoRA fine-tuning the shipped tiny base VLM ({base}: pretrained on perception only) on the "
-             "train participants (configs/finetune_tiny_base_cpu.yaml)")
-        model, prefix, row = base, "base", "tiny_base"
-        finetune = _config("finetune_tiny_base_cpu", cfg_dir,
-                           [f"dataset={data_dir}", f"model.name={base}", f"trainer.run_dir={ckpt}",
-                            "trainer.run_name=finetune_tiny_base"] + QUICK_FINETUNE, "degusta train")
-    else:
-        why = "--small" if small else f"no shipped base at {BASE_DIR}"
-        step(f"4/5 fine-tuning a RANDOM-weight tiny VLM with LoRA ({why}: the pipeline, not a result) "
-             "(configs/finetune_tiny_cpu.yaml)")
-        model, prefix, row = ckpt / "tiny" / "idefics3", "tiny", "tiny_vlm"
-        finetune = _config("finetune_tiny_cpu", cfg_dir,
-                           [f"dataset={data_dir}", f"model.name={model}", f"trainer.run_dir={ckpt}",
-                            "trainer.run_name=finetune_tiny"] + (SMALL_FINETUNE if small else []), "degusta train")
+    base = shipped_base()
+    if base is None:  # package data of every install: only a damaged install lacks it
+        raise DegustaError(f"the shipped tiny base VLM is missing from this install ({BASE_DIR}: config.json, "
+                           "model.safetensors); reinstall degusta_learn")
+    step(f"4/5 LoRA fine-tuning the shipped tiny base VLM ({BASE_NAME}: pretrained on perception only) on the "
+         "train participants (configs/finetune_tiny_base_cpu.yaml"
+         + (", a few steps: the pipeline, not a result)" if small else ")"))
+    row = "tiny_base"
+    finetune = _config("finetune_tiny_base_cpu", cfg_dir,
+                       [f"dataset={data_dir}", f"model.name={BASE_NAME}", f"trainer.run_dir={ckpt}",
+                        "trainer.run_name=finetune_tiny_base"] + (SMALL_FINETUNE if small else QUICK_FINETUNE),
+                       "degusta train")
     ft_dir = run_train(finetune, [])
     for name, adapter in ((f"{row}_zeroshot", None), (f"{row}_finetuned", ft_dir / "best_adapter")):
-        cfg_name = f"predict_hf_{prefix}_" + ("zeroshot" if adapter is None else "finetuned")
-        quick = QUICK_FINETUNED_PREDICT if adapter is not None and base is not None else []
-        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={model}",
+        cfg_name = "predict_hf_base_" + ("zeroshot" if adapter is None else "finetuned")
+        quick = (SMALL_PREDICT if small else QUICK_FINETUNED_PREDICT) if adapter is not None else []
+        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={BASE_NAME}",
                                            f"backend.adapter={adapter if adapter else 'null'}",
                                            f"out={runs / name / 'predictions.jsonl'}"] + quick, "degusta predict")
         entries.append(MethodEntry(name=name, config=str(path)))
@@ -139,12 +139,13 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
              "`degusta quickstart --with-api` (see configs/zeroshot_mogma_gpt4o.yaml for a local server)")
 
     step("5/5 comparing every method on the same episodes")
-    report = compare(CompareConfig(dataset=str(data_dir), out=str(out / "report"), methods=entries,
+    result = compare(CompareConfig(dataset=str(data_dir), out=str(out / "report"), methods=entries,
                                    episodes=str(ep_file), n_bootstrap=300 if small else 1000,
                                    title="degusta quickstart: every method on the SYNTHETIC naturalistic default"),
                      log=log)
+    report = result.out
     step(f"done. Report: {report / 'report.md'} (open {report / 'report.html'} in a browser)")
-    return report
+    return result
 
 
 # Sizes that keep the main job near 10 CPU minutes (the shipped configs train longer and score better).
@@ -161,7 +162,9 @@ job", has what each choice measured."""
 QUICK_FINETUNED_PREDICT = ["backend.report_unconstrained=false"]
 """The fine-tuned row's answers as the shipped predict config decodes them (greedy + votes of five samples), without
 the free answers behind the free parse rate (~30% of its decoding time; the report shows none for that row)."""
-SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4"]
+SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4", "data.contexts=[0,2,4]"]
+SMALL_PREDICT = ["backend.report_unconstrained=false", "n=1", "temperature=0.0", "aggregation=steps"]
+"""--small decodes the fine-tuned row greedily, once: the pipeline is tested, the score is not the point."""
 
 
 def api_entry(data_dir: Path, out: Path, cfg_dir: Path, ep_file: Path, with_api: bool, step) -> list:

@@ -41,8 +41,8 @@ class Collator:
     def encode(self, examples) -> tuple[dict, list[tuple[list[int], list[int]]], list[int]]:
         """(processor output for the prompts, (completion ids, labels) per example, prompt length per example).
 
-        The one place prompt + answer tokens are counted: batches (`__call__`) and `token_counts` (the
-        dry run of `degusta train`) both go through it.
+        The one place prompt + answer tokens are counted with the processor: batches (`__call__`) and
+        `token_counts` both go through it (`text_counts` tokenizes the same texts without the processor).
         """
         tok = self.processor.tokenizer
         texts, images = [], []
@@ -77,6 +77,23 @@ class Collator:
         """Per example: {"total", "image", "text", "answer"} tokens, exactly as a batch would hold them
         (no budget check: the caller compares "total" with `max_length`)."""
         return self._counts(*self.encode(examples))
+
+    def text_counts(self, examples) -> list[dict]:
+        """Per example, WITHOUT the image processor: {"prompt": tokens of the prompt text with each image left
+        as the chat template's placeholder (not expanded), "layout": the prompt images' (width, height) in
+        order, "answer": answer (and follow-up) tokens, as `token_counts` counts them}. The processor expands a
+        placeholder by the image's size alone, so among examples of one layout `token_counts`' prompt length
+        (image + text) is "prompt" plus a constant (`finetune.token_count.token_budget` measures it per layout)."""
+        texts, layouts = [], []
+        for ex in examples:
+            messages, ims = prompt_messages(ex.prompt)
+            texts.append(self.fmt.prompt_text(messages))
+            layouts.append(tuple(tuple(im.size) for im in ims))
+        if not texts:
+            return []
+        ids = self.processor.tokenizer(texts, add_special_tokens=False)["input_ids"]
+        return [{"prompt": len(p), "layout": layout, "answer": len(self._completion(ex)[0])}
+                for p, layout, ex in zip(ids, layouts, examples)]
 
     def _counts(self, enc, completions, prompt_lens) -> list[dict]:
         out = []

@@ -10,7 +10,8 @@ A fine-tuning run folder holds two exports of the weights, both loadable without
   run (`sync_best`: an export a kill interrupted is redone from `best.ckpt`). This is what the predict
   configs load. Its `degusta_selection.json` says which validation it comes from (monitor, score, step).
 
-Every export also gets `degusta_finetune.json` (`finetune.train.write_meta`: how prompts were built).
+Every export also gets `degusta_finetune.json` (`finetune.train.write_meta`: how prompts were built), the resolved
+config (`finetune_config.yaml`) and a model card (`README.md`: finetune/card.py) that the Hub and peft read.
 A folder is staged beside it and swapped in whole (`outdir.write_folder` with `MODEL_FOLDER`): a reader never
 sees a half-written adapter; a kill leaves the previous complete folder (or, in the instant between the two
 renames, an `.old.tmp` folder that the next write puts back), and a file of the user's inside it is kept.
@@ -43,7 +44,9 @@ SELECTION_FILE = "degusta_selection.json"
 
 def write_weights(module, out: Path, selection: dict | None = None) -> Path:
     """Write `module`'s current weights to `out` as a plain folder (adapter or model + processor), with the
-    fine-tuning metadata and, for a best export, `selection`; all or nothing (`write_folder`)."""
+    fine-tuning metadata, the model card (finetune/card.py) and, for a best export, `selection`; all or nothing
+    (`write_folder`: a card that cannot be written leaves the previous folder as it was)."""
+    from degusta_learn.finetune.card import write_finetune_files
     from degusta_learn.finetune.lora import save_adapter
     from degusta_learn.finetune.train import write_meta
 
@@ -56,7 +59,25 @@ def write_weights(module, out: Path, selection: dict | None = None) -> Path:
         write_meta(tmp, module.cfg, module.processor, chosen_on_val=selection is not None)
         if selection is not None:
             atomic_write_json(tmp / SELECTION_FILE, selection)
+        write_finetune_files(tmp, module.cfg, adapter=module.lora, selection=selection,
+                             metrics=validation_scores(module, selection))
     return Path(out)
+
+
+def validation_scores(module, selection: dict | None) -> dict | None:
+    """The validation scores of the weights being exported: the module's last validation when it is the selected
+    one (or, for the last weights, the latest), else the run's logged row at the selected step; None if unknown."""
+    from degusta_learn.trainer import validation_curve
+
+    last = getattr(module, "last_val", None)
+    step = int(getattr(module, "global_step", -1))
+    if last and (selection is None or int(selection["step"]) == step):
+        return {k: v for k, v in last.items() if k.startswith("val/")}
+    run_dir = getattr(module, "run_dir", None)
+    if selection is None or run_dir is None:
+        return None
+    rows = [r for r in validation_curve(Path(run_dir), selection["monitor"]) if r["step"] == int(selection["step"])]
+    return rows[-1] if rows else None
 
 
 def save_last(module, run_dir: Path) -> Path:

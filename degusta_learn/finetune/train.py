@@ -21,6 +21,8 @@ from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.config import FinetuneConfig
+from degusta_learn.finetune.dry_run import dry_run
+from degusta_learn.finetune.token_count import heaviest_draw, set_budget, token_budget
 from degusta_learn.methods import TrainerSpec
 
 
@@ -45,11 +47,13 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
 def train_sampler(cfg: FinetuneConfig, train, collator):
     """`(num_replicas, rank) -> TrainSampler` for `FinetuneData`: seeded by `trainer.seed` (two training seeds
     on one participant split differ in order, contexts and initial adapters), length-grouped by each
-    example's token count (`count_tokens`, epoch 0's contexts: a resampled context changes only its
+    example's token count (`token_budget`, epoch 0's contexts: a resampled context changes only its
     placement-order lines, a few tokens) when `data.group_by_length`."""
     from degusta_learn.finetune.data import TrainSampler
 
-    lengths = [c["total"] for c in count_tokens(train, collator)] if cfg.data.group_by_length else None
+    lengths = None
+    if cfg.data.group_by_length:
+        lengths = [c["total"] for c in token_budget(train, collator, seed=cfg.seed, heaviest=False).counts]
     return lambda replicas, rank: TrainSampler(train, cfg.trainer.seed, replicas, rank, lengths=lengths,
                                                batch_size=cfg.data.batch_size)
 
@@ -72,33 +76,14 @@ def prepare_model(cfg: FinetuneConfig):
     return lora.apply_lora(model, cfg.lora), processor
 
 
-def set_budget(cfg: FinetuneConfig, processor, model_config) -> None:
-    """Set the processor's image budget, then check it against the grid and `data.max_length` against the
-    model's context (one-line errors naming the key)."""
-    from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
-    from degusta_learn.prompting import answer_kind
-
-    set_image_budget(processor, model_config, cfg.model.image_size)
-    if answer_kind(cfg.method) == "grid":
-        check_grid_resolution(processor, model_config, cfg.data.grid, key="model.image_size")
-    context = getattr(model_config.get_text_config(), "max_position_embeddings", None)
-    if context and cfg.data.max_length > context:
-        raise DegustaError(f"data.max_length: {cfg.data.max_length} exceeds the model's context of {context} "
-                           "tokens; lower it (and the image budget: model.image_size, data.compose, data.include)")
-
 
 def check_budget(examples, collator) -> None:
-    """Collate the longest-looking training example now, so a budget error comes before training: the most
-    context arrangements and objects, with (when contexts are redrawn each epoch) the heaviest context any
-    epoch could draw for it."""
+    """Collate the longest-looking training example now (`heaviest_draw`), so a budget error comes before
+    training."""
     if len(examples) == 0:
         raise DegustaError("data.contexts: no training episodes (empty train split?)")
-    ds = examples.ds
-    heaviest = [examples.heaviest(i) for i in range(len(examples))]
-    size = [(len(ep.context), sum(len(ds.arrangement(ep.participant, t).placements) for t in (*ep.context, ep.target)))
-            for ep in heaviest]
-    i = max(range(len(heaviest)), key=size.__getitem__)
-    collator([examples.example(i, heaviest[i])])
+    i, ep = heaviest_draw(examples)
+    collator([examples.example(i, ep)])
 
 
 def write_meta(out: Path, cfg: FinetuneConfig, processor, chosen_on_val: bool = True) -> None:
@@ -129,7 +114,7 @@ def run(cfg: FinetuneConfig) -> Path:
     """Train per `cfg` (resuming `<run>/last.ckpt` if present); returns the run folder."""
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.export import save_last, sync_best
+    from degusta_learn.finetune.export import save_last, sync_best, validation_scores
     from degusta_learn.finetune.tower_cache import cache_frozen_tower
     from degusta_learn.vlm.generate import chat_format
     from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing, monitor_keys
@@ -165,7 +150,11 @@ def run(cfg: FinetuneConfig) -> Path:
             return run_dir
         save_last(module, run_dir)  # adapter/ (LoRA) or model/ (full): the last weights
         if module.lora and cfg.lora.merge:
-            write_meta(lora.merge_and_save(model, processor, run_dir / "merged"), cfg, processor, chosen_on_val=False)
+            from degusta_learn.finetune.card import write_finetune_files
+
+            merged = lora.merge_and_save(model, processor, run_dir / "merged")
+            write_meta(merged, cfg, processor, chosen_on_val=False)
+            write_finetune_files(merged, cfg, adapter=False, metrics=validation_scores(module, None))
         write_meta(run_dir, cfg, processor)
         sync_best(module, run_dir)  # best_adapter/ or best_model/ = best.ckpt (loads it: keep this last)
         return run_dir
@@ -189,198 +178,6 @@ def ensure_tiny_model(cfg: FinetuneConfig, wait_s: float = 600.0) -> None:
             raise DegustaError(f"model.build_tiny: rank {global_rank()} waited {wait_s:.0f} s for rank 0 to build "
                                f"{cfg.model.name}; build it first (a single-process run) or check rank 0's error")
         time.sleep(0.5)
-
-
-class _SizeOnlyRenderer:
-    """Stands in for the lifted-image renderer when only token counts are needed: blank images of the
-    renderer's exact size (every lifted image is `size` x `size`; the processor's token count depends only on
-    that), so counting every training example takes seconds instead of drawing every scene."""
-
-    def __init__(self, size: int):
-        self.size = size
-
-    def _blank(self, *args, **kwargs):
-        from PIL import Image
-
-        return Image.new("RGB", (self.size, self.size), "white")
-
-    gomo = gomo_sheet = uma = gma = table = _blank
-
-
-def count_tokens(examples, collator, limit: int | None = None, batch: int = 16) -> list[dict]:
-    """`Collator.token_counts` of every example (or the first `limit`): prompts built as in training, the
-    lifted images blank at their size."""
-    import copy
-
-    n = len(examples) if limit is None else min(limit, len(examples))
-    if n == 0:
-        return []
-    counting = copy.copy(examples)
-    counting._renderer = _SizeOnlyRenderer(examples.render_size)
-    out: list[dict] = []
-    for start in range(0, n, batch):
-        out += collator.token_counts([counting[i] for i in range(start, min(start + batch, n))])
-    return out
-
-
-def token_summary(counts: list[dict], max_length: int, what: str) -> str:
-    """"max M / mean m of data.max_length L (p% used) over N <what>; image, text, answer max / mean"."""
-    def mm(key: str) -> str:
-        values = [c[key] for c in counts]
-        return f"{max(values)} / {sum(values) / len(values):.1f}"
-
-    top = max(c["total"] for c in counts)
-    return (f"max {top} / mean {sum(c['total'] for c in counts) / len(counts):.1f} tokens of data.max_length "
-            f"{max_length} ({top / max_length:.0%} used) over {len(counts)} {what} (max / mean: image {mm('image')}, "
-            f"other prompt {mm('text')}, answer {mm('answer')})")
-
-
-def refuse_over_budget(examples, counts: list[dict], collator) -> None:
-    """The collator's own one-line `data.max_length` error for the longest example over the budget."""
-    if not counts:
-        return
-    worst = max(range(len(counts)), key=lambda i: counts[i]["total"])
-    if counts[worst]["total"] > collator.max_length:
-        raise collator.budget_error(examples[worst], counts[worst])
-
-
-def meta_model(source: str, key: str = "model.name"):
-    """(model built from its config on the meta device: shapes only, no memory, no weights read; its config)."""
-    import torch
-    from transformers import AutoConfig, AutoModelForImageTextToText
-
-    try:
-        config = AutoConfig.from_pretrained(source, local_files_only=True)
-        with torch.device("meta"):
-            model = AutoModelForImageTextToText.from_config(config)
-    except Exception as e:  # noqa: BLE001 - a foreign or broken config.json: one line
-        first = (str(e).strip().splitlines() or [""])[0]
-        raise DegustaError(f"{key}: cannot build {source!r} from its config: {type(e).__name__}: {first}"[:400]) from None
-    return model, config
-
-
-def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: int, batch_size: int,
-               counts: list[dict], on_gpu: bool):
-    """The dry run's memory estimate of a VLM fine-tune (see `dryrun.estimate_memory` for the model)."""
-    from degusta_learn.dryrun import (CPU_ACTIVATION_FACTOR, RUNTIME_CPU_BYTES, RUNTIME_GPU_BYTES, estimate_memory,
-                                      transformer_activations)
-    from degusta_learn.trainer import effective_precision, world_size
-
-    dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu and lora_cfg.mode != "full"
-                                                               else "float32")  # full: fp32 master weights
-    param_bytes = {"float32": 4, "bfloat16": 2, "float16": 2}[dtype]
-    note = f"{dtype} weights"
-    if lora_cfg.mode == "qlora":
-        param_bytes, note = 0.55, "4-bit NF4 base (~0.55 bytes per weight with its scales)"
-    trainable_bytes = 4 if lora_cfg.mode != "full" else param_bytes  # peft keeps adapter weights in fp32
-    precision = effective_precision(trainer_cfg)  # bf16-mixed on a CPU without native bf16 runs as 32-true
-    act_bytes = 2 if (param_bytes < 4 or "16" in precision) else 4
-    T = max(c["total"] for c in counts)
-    text = config.get_text_config()
-    hidden = getattr(text, "hidden_size", 0)
-    inter = getattr(text, "intermediate_size", 4 * hidden)
-    layers = getattr(text, "num_hidden_layers", 0)
-    heads = getattr(text, "num_attention_heads", 1) or 1
-    kv_width = (getattr(text, "num_key_value_heads", None) or heads) * (getattr(text, "head_dim", None) or hidden // heads)
-    acts = transformer_activations(batch_size * T, hidden, inter, layers, act_bytes,
-                                   checkpointing=cfg_model.gradient_checkpointing,
-                                   lora=lora_cfg.mode in ("lora", "qlora"), kv_width=kv_width)
-    answer = max(c["answer"] for c in counts)
-    vocab = getattr(text, "vocab_size", 0)
-    acts += batch_size * answer * vocab * 4 * 2  # fp32 logits of the supervised positions + their softmax grad
-    # the connector comes after the tower: adapting it keeps none of the tower's activations for the backward pass
-    vision_trains = lora_cfg.vision_targets or (lora_cfg.mode == "full" and not lora_cfg.freeze_vision)
-    vc = getattr(config, "vision_config", None)
-    if vision_trains and vc is not None and getattr(vc, "hidden_size", None) and getattr(vc, "num_hidden_layers", None):
-        merge = getattr(config, "scale_factor", None) or getattr(vc, "spatial_merge_size", None) or 1
-        patches = batch_size * max(c["image"] for c in counts) * merge**2
-        acts += transformer_activations(patches, vc.hidden_size, getattr(vc, "intermediate_size", 4 * vc.hidden_size),
-                                        vc.num_hidden_layers, act_bytes, cfg_model.gradient_checkpointing)
-        note += "; the vision tower trains: its activations are counted"
-    elif vision_trains:
-        note += "; the vision tower trains, but its activations are not modelled (no transformer config): add them"
-    else:
-        note += "; frozen vision tower: no activations kept for it"
-    note += (f"; activations for a batch of {batch_size} x {T} tokens"
-             f"{', gradient checkpointing' if cfg_model.gradient_checkpointing else ''}")
-    if not on_gpu:
-        acts *= CPU_ACTIVATION_FACTOR
-        note += f"; activations x{CPU_ACTIVATION_FACTOR} on the CPU (backward transients, heap fragmentation)"
-        if cfg_model.gradient_checkpointing:  # measured: benchmarks/RESULTS.md, "glibc and gradient checkpointing"
-            note += ("; with gradient checkpointing glibc keeps the recomputed layers' freed memory: the RSS was "
-                     "24-45% above this on the replicas, and within 3% of it with MALLOC_MMAP_THRESHOLD_=1048576")
-    runtime = RUNTIME_GPU_BYTES if on_gpu else RUNTIME_CPU_BYTES
-    note += "; runtime: CUDA context and kernels" if on_gpu else "; runtime: the CPU process itself"
-    return estimate_memory(total, trainable, param_bytes, trainable_bytes, acts, world_size(trainer_cfg), note,
-                           runtime_bytes=runtime)
-
-
-def dry_run(cfg: FinetuneConfig, log=print) -> None:
-    """`degusta train --dry-run` for kind finetune: sizes, token budget, steps and memory; loads no weights,
-    trains nothing, writes nothing (an unbuilt tiny model is built in a temporary folder, then removed)."""
-    import contextlib
-    import dataclasses
-    import tempfile
-    import warnings
-
-    import torch
-
-    from degusta_learn.finetune import lora
-    from degusta_learn.finetune.collate import Collator
-    from degusta_learn.vlm.inputs import ChatFormat
-    from degusta_learn.vlm.load import load_processor
-    from degusta_learn.finetune.module import monitor_keys
-    from degusta_learn.render.grid import Grid
-    from degusta_learn.scene import load_dataset
-    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
-    from degusta_learn.trainer import trains_on_gpu
-
-    ds = load_dataset(cfg.dataset)
-    grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
-    notes = []
-    with contextlib.ExitStack() as stack:
-        source = cfg.model.name
-        marker = Path(source) / "degusta_tiny.json"
-        if cfg.model.build_tiny and not marker.is_file():
-            from degusta_learn.vlm.tiny import ensure_tiny
-
-            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="degusta-dry-run-"))
-            source = str(ensure_tiny(Path(tmp) / "tiny", cfg.model.build_tiny))
-            notes.append(f"{cfg.model.name} is not built yet: its tiny {cfg.model.build_tiny} was built in a temporary "
-                         "folder to read its config and processor (the run builds it in place)")
-        processor = load_processor(source, "model.name")
-        model, config = meta_model(source)
-    set_budget(cfg, processor, config)
-    fmt = ChatFormat(processor, getattr(model, "generation_config", None))
-    total = sum(p.numel() for p in model.parameters())
-    counting_lora = dataclasses.replace(cfg.lora, mode="lora") if cfg.lora.mode == "qlora" else cfg.lora
-    with torch.device("meta"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)  # peft asks a deprecated transformers property
-        model = lora.apply_lora(model, counting_lora)
-    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
-    total_after = sum(p.numel() for p in model.parameters())
-    collator = Collator(processor, fmt, cfg.data.max_length, getattr(config, "image_token_id", None))
-    train, val = build_examples(cfg, ds, grid)
-    if len(train) == 0:
-        raise DegustaError("data.contexts: no training episodes (empty train split?)")
-    counts, val_counts = count_tokens(train, collator), count_tokens(val, collator)
-    refuse_over_budget(train, counts, collator)
-    refuse_over_budget(val, val_counts, collator)
-    t = cfg.trainer
-    on_gpu = trains_on_gpu(t)
-    what = {"lora": f"LoRA r={cfg.lora.r} adapters", "qlora": f"QLoRA r={cfg.lora.r} adapters on a 4-bit base",
-            "full": "full fine-tuning" + (" (vision tower frozen)" if cfg.lora.freeze_vision else "")}[cfg.lora.mode]
-    lines = [("model", f"{cfg.model.name} ({config.model_type}): {total:,} parameters, built on the meta device "
-                       "(no weights loaded)"),
-             ("trainable", f"{trainable:,} parameters ({trainable / max(total_after, 1):.2%} of {total_after:,}), "
-                           f"{what}"),
-             ("tokens per example", token_summary(counts, cfg.data.max_length, "training examples")
-              + (f"; validation: max {max(c['total'] for c in val_counts)} over {len(val_counts)}" if val_counts else ""))]
-    lines += dry_run_trainer_lines(t, monitor_keys(cfg), len(train), cfg.data.batch_size)
-    mem = vlm_memory(cfg.model, cfg.lora, t, config, total_after, trainable, cfg.data.batch_size, counts, on_gpu)
-    lines.append(("predicted memory", mem.describe()))
-    lines += [("note", n) for n in notes]
-    print_dry_run(f"dry run of kind finetune ({cfg.method}): nothing loaded, trained or written", lines, log)
 
 
 TRAINER = TrainerSpec(FinetuneConfig, run, "fine-tune a VLM (LoRA / QLoRA / full) on lifted images of a "

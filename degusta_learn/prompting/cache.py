@@ -52,9 +52,13 @@ def prompt_digest(prompt: Prompt) -> str:
     return h.hexdigest()
 
 
-def folder_fingerprint(path: str | None) -> str | None:
-    """A hash of a local model/adapter folder's file names, sizes and mtimes (retraining changes it)."""
-    if not path or not Path(path).is_dir():
+def folder_fingerprint(name: str | None) -> str | None:
+    """A hash of a local model/adapter folder's file names, sizes and mtimes (retraining changes it); a shipped
+    model's name counts as its folder; a hub id (None here) is keyed by the id itself."""
+    from degusta_learn.vlm.hub import local_folder
+
+    path = local_folder(name)
+    if path is None:
         return None
     h = hashlib.sha256()
     for f in sorted(Path(path).rglob("*")):

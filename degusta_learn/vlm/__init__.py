@@ -1,6 +1,7 @@
 """Local vision-language models, shared by zero-shot prompting (the `hf` backend) and fine-tuning.
 
-load.py loads any VLM (hub id from the local cache, or a folder) offline with an optional peft adapter;
+hub.py says where a model comes from (a folder, a shipped model, or a Hub id downloaded into the Hugging Face
+cache unless HF_HUB_OFFLINE); load.py loads it with its processor and an optional peft adapter;
 inputs.py is the chat format, prompt encoding and image budget (and the grid-resolution check);
 prompt_options.py cuts a prompt down for a small model (image groups, composed canvases);
 grammar.py + constrain.py + generate.py generate answers, optionally constrained to the answer grammar;

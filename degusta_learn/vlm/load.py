@@ -1,32 +1,31 @@
-"""Load a VLM (hub id or local folder) with its processor, offline, optionally with a peft adapter.
+"""Load a VLM (a folder, a shipped model or a hub id) with its processor, optionally with a peft adapter.
 
-The same code loads SmolVLM-256M-Instruct from the local hub cache, a tiny model built by `tiny.py`
-and a fine-tuned full model: `AutoModelForImageTextToText` + `AutoProcessor`, never a download
-(`HF_HUB_OFFLINE=1` is set for the process and `local_files_only=True` is passed). A hub id that is
-not in the local cache fails at once with a DegustaError naming the config key, not a hub timeout.
+The same code loads SmolVLM-256M-Instruct from the Hub, the shipped tiny base (`tiny_vlm_base`), a tiny
+model built by `tiny.py` and a fine-tuned full model: `AutoModelForImageTextToText` + `AutoProcessor` on the
+local folder `vlm/hub.py` resolves the name to (a hub id is downloaded into the standard Hugging Face cache
+when missing, unless `HF_HUB_OFFLINE=1`; every problem is one line naming the config key).
 
 Usage:
-    model, processor = load_vlm("checkpoints/tiny/idefics3")
+    model, processor = load_vlm("tiny_vlm_base")
     model, processor = load_vlm("HuggingFaceTB/SmolVLM-256M-Instruct", adapter="checkpoints/run/adapter")
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
 import warnings
 from pathlib import Path
 
 from degusta_learn.devices import resolve_device
 from degusta_learn.errors import DegustaError
+from degusta_learn.vlm.hub import check_json_files, resolve_adapter, resolve_model
 
 DTYPES = ("auto", "float32", "bfloat16", "float16")
 
 
-def offline() -> None:
-    """Forbid hub downloads for this process (call before importing transformers' hub helpers)."""
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    os.environ.setdefault("TRANSFORMERS_NO_ADVISORY_WARNINGS", "1")
+def quiet_transformers() -> None:
+    """transformers' advisory warnings and its own progress bars (loading shards) off for this process; the
+    Hub's download progress stays visible. Sets no offline mode: that is the user's `HF_HUB_OFFLINE`."""
     try:
         from transformers.utils import logging as hf_logging
 
@@ -49,61 +48,15 @@ def resolve_dtype(dtype: str, device: str, key: str = "dtype"):
     return getattr(torch, dtype)
 
 
-MODEL_JSON_FILES = ("config.json", "generation_config.json", "processor_config.json", "preprocessor_config.json",
-                    "tokenizer_config.json", "special_tokens_map.json", "tokenizer.json", "adapter_config.json")
-
-
-def _check_json_files(folder: Path, key: str) -> None:
-    """The folder's JSON files the loaders read parse as JSON objects (else one line naming the file: the
-    libraries' own errors name none, or fail later with an AttributeError)."""
-    import json
-
-    for name in MODEL_JSON_FILES:
-        path = folder / name
-        if not path.is_file():
-            continue
-        try:
-            data = json.loads(path.read_bytes())
-        except (OSError, ValueError, RecursionError) as e:  # UnicodeDecodeError and JSONDecodeError included
-            raise DegustaError(f"{key}: {path}: not readable as JSON ({_first_line(e)[:200]})") from None
-        if not isinstance(data, dict):
-            raise DegustaError(f"{key}: {path}: expected a JSON object, got {type(data).__name__}")
-
-
-def check_model_source(model_id_or_path: str, key: str = "model") -> str:
-    """A local folder, or a hub id present in the local cache; else DegustaError naming `key`."""
-    path = Path(model_id_or_path).expanduser()
-    if path.is_dir():
-        if not (path / "config.json").is_file():
-            raise DegustaError(f"{key}: {path} is a folder without config.json (not a saved model)")
-        _check_json_files(path, key)
-        return str(path)
-    looks_local = model_id_or_path.startswith((".", "/", "~")) or model_id_or_path.count("/") > 1
-    if looks_local:
-        raise DegustaError(f"{key}: model folder {model_id_or_path} not found (a tiny CPU model is built by "
-                           "`degusta train --config configs/finetune_tiny_cpu.yaml`)")
-    from huggingface_hub import try_to_load_from_cache
-
-    try:
-        cached = try_to_load_from_cache(model_id_or_path, "config.json")
-    except Exception:  # invalid repo id syntax
-        cached = None
-    if not isinstance(cached, str):
-        raise DegustaError(
-            f"{key}: {model_id_or_path!r} is neither a local model folder nor in the local Hugging Face cache; "
-            "nothing is downloaded here: fetch it first on a machine with network "
-            f"(`huggingface-cli download {model_id_or_path}`) or give a local folder (as a folder it would be "
-            f"{path.absolute()}: a relative path is read from the current directory)")
-    return model_id_or_path
-
-
-def load_processor(model_id_or_path: str, key: str = "model"):
-    offline()
-    return _processor_from(check_model_source(model_id_or_path, key), model_id_or_path, key)
+def load_processor(model_id_or_path: str, key: str = "model", local_files_only: bool = False):
+    """The processor of a model (folder, shipped name or hub id); a hub id's weights are not downloaded."""
+    quiet_transformers()
+    source = resolve_model(model_id_or_path, key, weights=False, local_files_only=local_files_only)
+    return _processor_from(str(source), model_id_or_path, key)
 
 
 def _processor_from(source: str, model_id_or_path: str, key: str):
-    """The processor of a checked `source` (check_model_source's answer for `model_id_or_path`)."""
+    """The processor in the resolved local folder `source` (`resolve_model`'s answer for `model_id_or_path`)."""
     from transformers import AutoProcessor
 
     try:
@@ -119,11 +72,12 @@ def _processor_from(source: str, model_id_or_path: str, key: str):
 
 def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "auto", dtype: str = "auto",
              trainable_adapter: bool = False, key: str = "model", quantization_config=None,
-             merge_adapter: bool = False):
-    """Load (model, processor) offline through the Auto classes, with an optional peft adapter.
+             merge_adapter: bool = False, local_files_only: bool = False):
+    """Load (model, processor) through the Auto classes, with an optional peft adapter.
 
     Args:
-        model_id_or_path: hub id (must be in the local HF cache) or a saved model folder.
+        model_id_or_path: a saved model folder, a shipped model name, or a hub id (downloaded into the Hugging
+            Face cache when missing; refused in one line when offline: vlm/hub.py).
         adapter: a folder written by `PeftModel.save_pretrained` (degusta writes `<run>/adapter/`).
         device: "auto", "cpu", "cuda", "cuda:1", ...
         dtype: "auto" (bf16 on a capable GPU, else fp32), "float32", "bfloat16", "float16".
@@ -138,10 +92,10 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     Returns:
         (model in eval mode on `device`, processor).
     """
-    offline()
+    quiet_transformers()
     from transformers import AutoModelForImageTextToText
 
-    source = check_model_source(model_id_or_path, key)
+    source = str(resolve_model(model_id_or_path, key, local_files_only=local_files_only))
     section = key.rpartition(".")[0]  # backend.model -> backend.device, backend.dtype
     device = resolve_device(device, f"{section}.device" if section else "device")
     torch_dtype = resolve_dtype(dtype, device, f"{section}.dtype" if section else "dtype")
@@ -154,6 +108,8 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     except Exception as e:  # corrupt weights, a config that does not match them, a missing library (timm), ...
         raise DegustaError(f"{key}: cannot load {model_id_or_path!r} as an image-text-to-text model: "
                            f"{_first_line(e)}") from None
+    if source != str(model_id_or_path):  # a shipped name or a hub id read from its cached snapshot: the name stays
+        model.config._name_or_path = str(model_id_or_path)  # what peft records as base_model_name_or_path
     n_vocab = len(processor.tokenizer)
     emb = model.get_input_embeddings()
     if emb is not None and emb.num_embeddings < n_vocab:  # a processor from another model: ids would overflow
@@ -207,11 +163,11 @@ def load_adapter(model, adapter: str | Path, trainable: bool = False, key: str =
     is not one, a corrupt file or an adapter of another model is a DegustaError naming `key` and the folder."""
     from peft import PeftModel
 
-    path = Path(adapter)
+    path = resolve_adapter(adapter, key)
     if not (path / "adapter_config.json").is_file():
         raise DegustaError(f"{key}: {path} has no adapter_config.json (expected a folder written by "
                            "PeftModel.save_pretrained, e.g. checkpoints/<run>/adapter)")
-    _check_json_files(path, key)
+    check_json_files(path, key)
     try:
         with quiet_peft():
             return PeftModel.from_pretrained(model, str(path), is_trainable=trainable)

@@ -185,9 +185,9 @@ def build_replica(name: str, out_dir: str | Path, reference_dir: str | Path | No
     import torch
     from transformers import AutoModelForImageTextToText
 
-    from degusta_learn.vlm.load import offline
+    from degusta_learn.vlm.load import quiet_transformers
 
-    offline()
+    quiet_transformers()
     spec = replica_spec(name, key)
     processor, real = _processor(spec, reference_dir, key)
     tok = processor.tokenizer

@@ -258,9 +258,9 @@ def _set_generation_ids(model, tokenizer, eos_id: int, pad_id: int) -> None:
 
 
 def _save(out_dir, model, processor, kind: str) -> Path:
-    from degusta_learn.vlm.load import offline
+    from degusta_learn.vlm.load import quiet_transformers
 
-    offline()  # quiet progress bars; no hub calls
+    quiet_transformers()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(out)

@@ -192,6 +192,24 @@ def _curriculum(t: dict) -> str:
     return f"; its first {t['curriculum_steps']} decoder steps asked one-scene questions only ({asked})"
 
 
+def _load_lines(name: str, path: Path) -> list[str]:
+    """The card's loading snippet: the shipped base by its name (degusta) and by its folder inside the installed
+    package (transformers); another base by the folder it was exported to."""
+    from degusta_learn.shipped import BASE_DIR, BASE_NAME
+
+    shipped = path.resolve() == BASE_DIR
+    where = "BASE_DIR" if shipped else f'"{path.as_posix()}"'
+    return ["```python", *(["from degusta_learn.shipped import BASE_DIR  # this folder, inside the installed package"]
+                           if shipped else []),
+            "from transformers import AutoModelForImageTextToText, AutoProcessor",
+            f"model = AutoModelForImageTextToText.from_pretrained({where})",
+            f"processor = AutoProcessor.from_pretrained({where})", "```", "",
+            f"In a degusta_learn config: `model: {BASE_NAME if shipped else path.as_posix()}` (fine-tuning) or "
+            f"`backend: {{name: hf, model: {BASE_NAME if shipped else path.as_posix()}}}` (prompting); in Python, "
+            f"`degusta_learn.vlm.load.load_vlm({BASE_NAME if shipped else path.as_posix()!r})`."
+            + (" Publish it with `hf upload YOUR_NAME/" + name + f" {path.as_posix()}`." if not shipped else "")]
+
+
 def write_card(folder: Path, name: str | None = None, path: Path | None = None) -> Path:
     """(Re)write `folder/README.md` from degusta_base.json and, if present, perception.json.
 
@@ -219,11 +237,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
         "It was **never shown anyone's table setting and never the DegustaBot preference question** "
         "(\"my preferences ... set the table\"), so prompting it with that question is zero-shot, and "
         "fine-tuning it on people's arrangements is the miniature of fine-tuning SmolVLM.", "",
-        "## Load", "", "```python",
-        "from transformers import AutoModelForImageTextToText, AutoProcessor",
-        f"model = AutoModelForImageTextToText.from_pretrained(\"{path.as_posix()}\")",
-        f"processor = AutoProcessor.from_pretrained(\"{path.as_posix()}\")",
-        "# or: from degusta_learn.vlm.load import load_vlm; model, processor = load_vlm(path)", "```", "",
+        "## Load", "", *_load_lines(name, path), "",
         "## Architecture and image budget", "",
         f"- vision: timm `resnet18` layout with stage widths {a['vision_channels']}, blocks {a['vision_layers']}, "
         f"stem {a['vision_stem']}; {a['image_size']} px images, output stride 32: an "

@@ -266,13 +266,13 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
     With `data.teacher_steps`, `data.readout_weight` or `data.retrieval_weight`, the tokenizer is checked for the
     oracle tokens and the attention supervision (given `catalog` and `grid`) before anything is written."""
     from degusta_learn.fileio import atomic_write_json
-    from degusta_learn.vlm.load import offline
+    from degusta_learn.vlm.load import quiet_transformers
     from degusta_learn.finetune.pretrain.base import build_base
 
     init = run_dir / "init"
     if (init / "degusta_init.json").is_file():
         return init
-    offline()
+    quiet_transformers()
     model, processor = build_base(cfg.model, seed=cfg.seed)
     if needs_oracle(cfg.data) and catalog is not None and grid is not None:
         from degusta_learn.finetune.pretrain.dense import OracleTokens
@@ -387,7 +387,8 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     from degusta_learn.finetune.pretrain.base import build_base
     from degusta_learn.finetune.pretrain.module import monitor_keys
     from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
-    from degusta_learn.finetune.train import count_tokens, meta_model, refuse_over_budget, token_summary, vlm_memory
+    from degusta_learn.finetune.token_count import count_tokens, refuse_over_budget, token_summary
+    from degusta_learn.finetune.dry_run import meta_model, vlm_memory
     from degusta_learn.finetune.lora import LoraConfig
     from degusta_learn.finetune.config import ModelConfig
     from degusta_learn.render.grid import Grid

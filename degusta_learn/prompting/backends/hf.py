@@ -1,13 +1,13 @@
 """The `hf` backend: a local Hugging Face VLM (zero-shot base model, or base + fine-tuned adapter).
 
-Loads the model offline (`vlm.load.load_vlm`: hub id from the local cache or a folder, never a
-download), optionally with a peft adapter (`backend.adapter`, folded into the weights for speed), and answers with
+Loads the model (`vlm.load.load_vlm`: a folder, a shipped model such as `tiny_vlm_base`, or a hub id, downloaded
+into the Hugging Face cache when missing unless `HF_HUB_OFFLINE=1`: vlm/hub.py), optionally with a peft adapter (`backend.adapter`, folded into the weights for speed), and answers with
 `vlm.generate.generate_answers`, optionally constrained to the answer grammar
 (`backend.constrained: true`: every answer parses). A fine-tuned adapter or model folder carries
 `degusta_finetune.json` (a `FinetuneRecord`, vlm/record.py, written by `degusta train`): the backend
 re-applies its prompt options (image groups, composed canvases) and image budget, and refuses a different
 method or grid than the one trained, so the model is prompted exactly as it was trained. A base
-pretrained by degusta (`kind: pretrain`, e.g. checkpoints/tiny_vlm_base) carries `degusta_base.json` (a
+pretrained by degusta (`kind: pretrain`, e.g. the shipped `tiny_vlm_base`) carries `degusta_base.json` (a
 `BaseRecord`) instead: its image size, grid and prompt layout are applied the same way when it runs
 zero-shot. With a grid method, an image budget too coarse to show single grid cells is refused
 (`backend.image_size`). Before predicting, the runner calls `check_run` with the dataset and episodes:
@@ -114,12 +114,16 @@ class HFBackend(Backend):
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None,
                  on_repeat: str = "skip", context_answers: bool | None = None, report_unconstrained: bool = True):
         from degusta_learn.vlm.generate import chat_format
+        from degusta_learn.vlm.hub import resolve_adapter, resolve_model
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
         from degusta_learn.vlm.load import load_vlm
         from degusta_learn.vlm.record import FinetuneRecord, locate_record, read_record
 
         self.model = model
-        self.record_path = locate_record(adapter, model)  # how the model was trained: vlm/record.py
+        adapter = str(resolve_adapter(adapter, "backend.adapter")) if adapter else None
+        # how the model was trained (vlm/record.py): the adapter's record, read before the model is looked for;
+        # else the model folder's (a hub id is downloaded here if missing)
+        self.record_path = locate_record(adapter) or locate_record(resolve_model(model, "backend.model"))
         self.record = read_record(self.record_path) if self.record_path else None
         if grid is not None and self.record is not None:
             rows, cols = self.record.grid.rows, self.record.grid.cols
@@ -170,10 +174,13 @@ class HFBackend(Backend):
         """Before the model loads, predicting `episodes` of `ds` with images rendered at `image_size` px: refuse
         participants the model was trained or validated on, and another render size than in training."""
         from degusta_learn.scene.dataset import dataset_identity
+        from degusta_learn.vlm.hub import metadata_folder
         from degusta_learn.vlm.record import locate_record, read_record
 
         super().check_run(cfg, ds, episodes, image_size)
-        path = locate_record(cfg.adapter, cfg.model)
+        adapter = metadata_folder(cfg.adapter, "backend.adapter", adapter=True)  # a hub id: fails fast if offline
+        model = metadata_folder(cfg.model, "backend.model")
+        path = locate_record(adapter, model)  # the adapter's record first
         if path is not None:
             read_record(path).check_prediction(dataset_identity(ds), {e.participant for e in episodes}, image_size,
                                                where=str(path))
@@ -208,12 +215,14 @@ def _image_tokens_per_side(model: str, image_size: int | None) -> int | None:
     """Image tokens along one side of an image for `model` at `image_size` (None: unknown or unreadable)."""
     from transformers import AutoConfig
 
+    from degusta_learn.vlm.hub import resolve_model
     from degusta_learn.vlm.inputs import image_tokens_per_side, set_image_budget
     from degusta_learn.vlm.load import load_processor
 
     try:
-        processor = load_processor(model, "backend.model")
-        config = AutoConfig.from_pretrained(model, local_files_only=True)
+        folder = str(resolve_model(model, "backend.model", weights=False))
+        processor = load_processor(folder, "backend.model")
+        config = AutoConfig.from_pretrained(folder, local_files_only=True)
         set_image_budget(processor, config, image_size, key="backend.image_size")
         return image_tokens_per_side(processor, config)
     except Exception:  # noqa: BLE001 - an estimate: the run itself reports a missing or broken model in one line
