@@ -17,22 +17,26 @@ Exit codes (`ExitCode`; docs/reliability.md, "Exit codes"):
     3    ran, but something it reports failed: the output is written and one "degusta: ..." line on stderr names
          what failed (compare, quickstart: one or more methods failed, the report lists them and scores the
          rest; train --dry-run: a check FAILS on this machine, the whole report is printed)
-    130  interrupted (Ctrl-C, SIGTERM): finished work is kept
+    130  interrupted by Ctrl-C: finished work is kept
+    143  terminated by SIGTERM (a scheduler, `timeout`), handled as Ctrl-C is
 A verb returns its message (a str) or a `Result` (message + what failed); main() turns that into the status.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import enum
 import os
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.config import MAX_SEED
-from degusta_learn.errors import DegustaError
+from degusta_learn.errors import DegustaError, Terminated
 from degusta_learn.names import CONTEXT_LENGTHS, PROMPT_METHODS, SPLITS
 
 
@@ -46,7 +50,9 @@ class ExitCode(enum.IntEnum):
     PARTIAL = 3
     """It ran and wrote its output, but something it reports failed (a method, a check on this machine)."""
     INTERRUPTED = 130
-    """Ctrl-C or SIGTERM; finished work is kept."""
+    """Ctrl-C (128 + SIGINT); finished work is kept."""
+    TERMINATED = 143
+    """SIGTERM (128 + its number), handled as Ctrl-C is; finished work is kept."""
 
 
 @dataclass(frozen=True)
@@ -244,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "zero-shot VLM prompting, learned baselines, fine-tuning, evaluation.",
                      epilog="exit status: 0 ok; 2 a user error (nothing new written); 3 it ran and wrote its "
                             "output, but something it reports failed (compare/quickstart: a method; "
-                            "train --dry-run: a check FAILS on this machine); 130 interrupted")
+                            "train --dry-run: a check FAILS on this machine); 130 interrupted (143: SIGTERM)")
     parser.add_argument("--version", action="version", version=f"degusta {version()}")
     verbs = parser.add_subparsers(dest="verb", required=True)
 
@@ -339,6 +345,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """While a verb runs, SIGTERM raises `Terminated` (a KeyboardInterrupt) in the main thread, so a kill by a
+    scheduler or `timeout` keeps finished work exactly as Ctrl-C does; the previous handler is restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated(signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one verb; returns its `ExitCode` (module docstring)."""
     try:
@@ -347,15 +371,17 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else ExitCode.USER_ERROR
     func: Callable = args.func
     try:
-        result = func(args)
+        with sigterm_as_interrupt():
+            result = func(args)
     except DegustaError as e:
         from degusta_learn.prompting.backends.base import redact
 
         print(f"degusta: error: {redact(str(e))}", file=sys.stderr)  # a key pasted into a config never echoes
         return ExitCode.USER_ERROR
-    except KeyboardInterrupt:
-        print("degusta: interrupted; finished work is kept (re-run to resume)", file=sys.stderr)
-        return ExitCode.INTERRUPTED
+    except KeyboardInterrupt as e:
+        name = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        print(f"degusta: {name}; finished work is kept (re-run to resume)", file=sys.stderr)
+        return ExitCode.TERMINATED if isinstance(e, Terminated) else ExitCode.INTERRUPTED
     if not isinstance(result, Result):
         result = Result(result or "")
     if result.message:

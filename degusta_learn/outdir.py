@@ -39,7 +39,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from degusta_learn.errors import DegustaError
+from degusta_learn.errors import DegustaError, Terminated
 from degusta_learn.fileio import UMASK, refuse_overwriting_inputs
 
 
@@ -211,7 +211,7 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         return
 
     def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
+        raise Terminated(signum)
 
     signal.signal(signal.SIGTERM, handler)
     try:

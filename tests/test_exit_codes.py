@@ -127,3 +127,21 @@ def test_every_exit_code_is_documented():
     for code in ExitCode:
         assert re.search(rf"^\| {code.value} \|", table, re.M), code
         assert re.search(rf"^    {code.value} ", cli_doc, re.M), code
+
+
+def test_sigterm_is_handled_as_an_interrupt_with_status_143(tmp_path):
+    """A real process killed by SIGTERM mid-run (a scheduler, `timeout`): one line, exit 128 + 15."""
+    import signal
+    import time
+
+    code = ("import sys, time; import degusta_learn.cli as c\n"
+            "def slow(args):\n    print('started', flush=True); time.sleep(60)\n"
+            "c.cmd_configs_list = slow\nsys.exit(c.main(['configs', 'list']))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+    assert proc.stdout.readline().strip() == "started"
+    proc.send_signal(signal.SIGTERM)
+    start = time.monotonic()
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 128 + signal.SIGTERM == 143 and time.monotonic() - start < 30
+    assert err.strip() == "degusta: terminated (SIGTERM); finished work is kept (re-run to resume)"
