@@ -2,6 +2,7 @@
 
     python benchmarks/bench_render.py                 # both tables, printed as markdown
     python benchmarks/bench_render.py --repeats 50 --quick   # speed only
+    python benchmarks/bench_render.py --sizes 448,1024,2048,4096  # size -> ms of the image set, cold and warm
 
 Speed: the full image set of one `mogma` episode (4 context GMA images, the target table with the grid,
 one GoMO sheet per object type) at 448 px, in memory (PIL images, before any encoding), on one core
@@ -129,6 +130,49 @@ def bench_speed(ds: Dataset, repeats: int) -> list[str]:
     ]
 
 
+def bench_sizes(ds: Dataset, sizes: list[int], old_filter: bool = False, repeats: int = 3) -> list[str]:
+    """size -> ms of the same episode's full mogma image set: cold (sprite and table caches cleared, a new
+    Renderer: what a first render at that size costs) and warm (a new Renderer, caches kept; median of `repeats`).
+    `old_filter` draws the table rim with Pillow's MinFilter, as before 2026-12-01 (kernel^2 per pixel, and the
+    kernel grows with the size: size^4 in all)."""
+    import resource
+
+    import numpy as np
+    from PIL import Image, ImageFilter
+
+    from degusta_learn.render import tables
+
+    if old_filter:
+        tables._min_filter = lambda a, k: np.asarray(Image.fromarray(a).filter(ImageFilter.MinFilter(k)))
+    episodes = make_episodes(ds, 4, "test", 0)
+    ep = max(episodes, key=lambda e: sum(len(ds.arrangement(e.participant, t).placements) for t in e.context))
+    grid = Grid(8, 8)
+
+    def image_set(r: Renderer) -> list:
+        ims = [r.gma(ds.arrangement(ep.participant, t).table, ds.arrangement(ep.participant, t).placements, grid)
+               for t in ep.context]
+        ims.append(r.table(ds.arrangement(ep.participant, ep.target).table, grid))
+        return ims + [r.gomo(t) for t in ds.catalog.types]
+
+    lines = ["| size px | cold ms | warm ms | max RSS MB |", "|---:|---:|---:|---:|"]
+    for size in sizes:
+        for cache in (sprites._sprite, sprites._rotated, tables._table_image):
+            cache.cache_clear()
+        t = time.perf_counter()
+        image_set(Renderer.for_dataset(ds, size))
+        cold = (time.perf_counter() - t) * 1e3
+        warm = []
+        for _ in range(repeats):
+            r = Renderer.for_dataset(ds, size)
+            t = time.perf_counter()
+            image_set(r)
+            warm.append((time.perf_counter() - t) * 1e3)
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        lines.append(f"| {size} | {cold:.0f} | {statistics.median(warm):.0f} | {rss:.0f} |")
+        print(lines[-1], flush=True)
+    return lines
+
+
 def bench_quantization(ds: Dataset) -> list[str]:
     lines = ["| grid | cells | cell size | RMSD (unregistered) | RMSD (Kabsch) |", "|---|---|---|---|---|"]
     for n in (4, 6, 8, 10, 12):
@@ -142,10 +186,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--quick", action="store_true", help="speed only")
+    ap.add_argument("--sizes", help="comma-separated image sizes: time the image set at each (cold and warm) only")
+    ap.add_argument("--pillow-minfilter", action="store_true",
+                    help="with --sizes: the table rim as drawn before 2026-12-01 (Pillow's MinFilter: size^4)")
     args = ap.parse_args()
     ds, label = load_data()
     gc.freeze()  # the dataset's ~10^5 Python objects would otherwise make every gen-2 GC pass slow
     print(f"Data: {label}; {len(ds.arrangements)} arrangements.\n")
+    if args.sizes:
+        bench_sizes(ds, [int(x) for x in args.sizes.split(",")], old_filter=args.pillow_minfilter)
+        return
     print("\n".join(bench_speed(ds, args.repeats)))
     if not args.quick:
         print()

@@ -28,6 +28,7 @@ import argparse
 import contextlib
 import enum
 import os
+import re
 import signal
 import sys
 import threading
@@ -192,11 +193,12 @@ def cmd_configs_copy(args) -> str:
 
 
 def _config_arg(text: str) -> Path:
-    """An argparse type: --config as a path (an existing one wins) or a shipped config name."""
+    """An argparse type: --config as a path (an existing one wins; `~` expanded, checked as every path flag is) or a
+    shipped config name."""
     from degusta_learn.shipped import resolve_config
 
     try:
-        return resolve_config(text)
+        return resolve_config(_checked(text))
     except DegustaError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
@@ -212,10 +214,10 @@ def _int_in(lo: int, hi: int) -> Callable[[str], int]:
     """An argparse type: an integer in [lo, hi] (a seed, a size, a count), checked before anything runs."""
 
     def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text[:40]!r}") from None
+        # decimal digits only, as a config reads them (YAML 1.2): Python's int() also takes 1_000 and other scripts' digits
+        if not re.fullmatch(r"[-+]?[0-9]+", text.strip()):
+            raise argparse.ArgumentTypeError(f"expected an integer (decimal digits), got {text[:40]!r}")
+        value = int(text)
         if not lo <= value <= hi:
             raise argparse.ArgumentTypeError(f"expected an integer from {lo} to {hi}, got {text[:40]}")
         return value
@@ -224,17 +226,39 @@ def _int_in(lo: int, hi: int) -> Callable[[str], int]:
     return parse
 
 
+def _checked(text: str) -> str:
+    """`text` with `~` expanded, or ArgumentTypeError "PATH: why" (fileio.check_path: a NUL byte, a name or path too
+    long for the file system, non-UTF-8 bytes, a parent that is a file, a broken link, an unknown ~user ...); argparse
+    names the flag."""
+    from degusta_learn.fileio import check_path, shown_path
+
+    expanded, problem = check_path(text)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{shown_path(text)}: {problem}")
+    return expanded
+
+
 def _out_arg(text: str) -> Path:
     """An argparse type: an output path, never empty (Path("") is the current folder, whose files it would
-    replace)."""
+    replace), `~` expanded and checked (`_checked`)."""
     if not text.strip():
         raise argparse.ArgumentTypeError("an empty path; give the file or folder to write")
-    return Path(text)
+    return Path(_checked(text))
+
+
+def _in_arg(text: str) -> Path:
+    """An argparse type: a path to read (a dataset folder, a predictions or episodes file), `~` expanded and checked
+    (`_checked`); whether it exists is for the command to say."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give the file or folder to read")
+    return Path(_checked(text))
 
 
 SEED = _int_in(0, MAX_SEED)
 CONFIG_HELP = "a YAML file, or the name of a shipped config (degusta configs list)"
-IMAGE_SIZE = _int_in(16, 4096)
+IMAGE_SIZE = _int_in(64, 4096)
+"""`degusta render --size`: render.lifting.MIN_IMAGE_SIZE .. MAX_IMAGE_SIZE (a Renderer draws nothing smaller; the
+cost of an image set grows with the pixels, size^2: 4096 px takes ~1.2 min for an episode, benchmarks/RESULTS.md)."""
 
 
 def version() -> str:
@@ -263,10 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace an existing dataset folder that degusta generated (nothing else is ever deleted)")
     p.set_defaults(func=cmd_data_generate)
     p = data.add_parser("validate", help="check a dataset folder; exit 0 or name the file/line/field")
-    p.add_argument("dir", type=Path)
+    p.add_argument("dir", type=_in_arg)
     p.set_defaults(func=cmd_data_validate)
     p = data.add_parser("episodes", help="write episodes.jsonl for a context length and split")
-    p.add_argument("dir", type=Path)
+    p.add_argument("dir", type=_in_arg)
     p.add_argument("--context", type=int, choices=list(CONTEXT_LENGTHS), required=True)
     p.add_argument("--split", default="test", choices=list(SPLITS))
     p.add_argument("--seed", type=SEED, default=0)
@@ -294,9 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     p = verbs.add_parser("evaluate", help="predictions -> metrics.json, per_episode.csv, report.md")
-    p.add_argument("--dataset", required=True, type=Path)
-    p.add_argument("--predictions", required=True, type=Path, nargs="+")
-    p.add_argument("--episodes", type=Path, help="the episode set the predictions must cover (optional)")
+    p.add_argument("--dataset", required=True, type=_in_arg)
+    p.add_argument("--predictions", required=True, type=_in_arg, nargs="+")
+    p.add_argument("--episodes", type=_in_arg, help="the episode set the predictions must cover (optional)")
     p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--bootstrap", type=_int_in(1, 1_000_000), default=1000, help="bootstrap resamples for the intervals")
     p.add_argument("--seed", type=SEED, default=0)
@@ -310,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     render = verbs.add_parser("render", help="lifted images of an episode or of the catalog").add_subparsers(
         dest="render_verb", required=True)
     p = render.add_parser("episode", help="an episode's context/target images, object sheets and prompt texts")
-    p.add_argument("dataset", type=Path)
+    p.add_argument("dataset", type=_in_arg)
     p.add_argument("--participant", required=True)
     p.add_argument("--target", type=_int_in(0, 999_999_999), required=True, help="the target trial")
     p.add_argument("--context", type=_int_in(0, 1000), required=True, help="context length (e.g. 0, 2, 4)")
@@ -321,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=SEED, default=0, help="episode seed (as in degusta data episodes)")
     p.set_defaults(func=cmd_render_episode)
     p = render.add_parser("catalog", help="a contact sheet of the whole catalog")
-    p.add_argument("dataset", type=Path)
+    p.add_argument("dataset", type=_in_arg)
     p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--size", type=IMAGE_SIZE, default=448, help="pixels per object-type sheet")
     p.set_defaults(func=cmd_render_catalog)
@@ -339,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_configs_list)
     p = configs.add_parser("copy", help="write a shipped config out to edit (never overwrites)")
     p.add_argument("name", help="a shipped config name, with or without .yaml (degusta configs list)")
-    p.add_argument("dest", nargs="?", type=Path, default=Path("."),
+    p.add_argument("dest", nargs="?", type=_out_arg, default=Path("."),
                    help="the folder to write NAME.yaml into (default: here), or a .yaml file name")
     p.set_defaults(func=cmd_configs_copy)
     return parser
@@ -375,10 +399,14 @@ def main(argv: list[str] | None = None) -> int:
             result = func(args)
     except DegustaError as e:
         from degusta_learn.prompting.backends.base import redact
+        from degusta_learn.textsafe import one_line
 
-        print(f"degusta: error: {redact(str(e))}", file=sys.stderr)  # a key pasted into a config never echoes
+        # one line, a key pasted into a config never echoed, a server's reply quoted without its control characters
+        print(f"degusta: error: {one_line(redact(str(e)), limit=None)}", file=sys.stderr)
         return ExitCode.USER_ERROR
     except KeyboardInterrupt as e:
+        if argv is None and threading.current_thread() is threading.main_thread():  # the `degusta` process itself:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM while it exits is not a kill (-15)
         name = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
         print(f"degusta: {name}; finished work is kept (re-run to resume)", file=sys.stderr)
         return ExitCode.TERMINATED if isinstance(e, Terminated) else ExitCode.INTERRUPTED

@@ -10,12 +10,20 @@ Hostile or oversized input is refused with one line, never loaded: YAML whose al
 non-UTF-8, too-deep nesting, non-finite floats, and numbers outside the range a field declares with
 `bounded(default, lo, hi)` (e.g. ``x.yaml: model.image_size: expected a value from 16 to 4,096, got 60000``).
 
+Numbers and booleans are read as YAML 1.2 (its core schema), in files and in `--set` values alike, never as
+PyYAML's YAML 1.1: `010` is 10 (not octal 8), `0o10` 8, `0x10` 16, `1e3` and `6e-3` are floats; `1:30` (not 90),
+`1_000`, `0b10`, `yes`, `no`, `on`, `off` and `2024-01-05` are text, so a number or boolean key given one of them
+is refused with one line naming the key. Only `true` / `false` are booleans; `.inf` / `.nan` are refused by every
+number key (non-finite). Path keys (`PATH_KEYS`: `dataset`, `out`, `episodes`, ...) have `~` expanded and are
+checked by `fileio.check_path` (NUL bytes, names too long, non-UTF-8, a parent that is a file ...), naming the key.
+
 Example:
     cfg = load_config(MyConfig, "configs/learned_cpu.yaml", overrides=["trainer.max_epochs=3"])
 """
 
 from __future__ import annotations
 
+import contextvars
 import copy
 import dataclasses
 import math
@@ -28,12 +36,13 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin
 import yaml
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import open_regular
+from degusta_learn.fileio import NOT_UTF8, check_path, not_utf8, open_regular, shown_path
 
 T = TypeVar("T")
 
 _EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
-"""A number in exponent notation, which YAML 1.1 (PyYAML) reads as text unless it has a "." (6e-3, 1e5)."""
+"""A number in exponent notation given as text to a float key (a quoted '6e-3', or a dict built in Python from
+YAML 1.1 output, which reads 6e-3 as text): taken as the number. The YAML 1.2 loader reads 6e-3 as a float."""
 
 
 MAX_CONFIG_BYTES = 4 * 1024 * 1024
@@ -73,9 +82,38 @@ class _YamlDuplicateKey(Exception):
         self.line, self.key, self.first = line, key, first
 
 
+_INT12 = re.compile(r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+")
+_FLOAT12 = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?|[-+]?\.(inf|Inf|INF)|\.(nan|NaN|NAN)")
+
+
 class _BoundedLoader(yaml.SafeLoader):
-    """A SafeLoader whose documents are checked for alias expansion and cycles before they are built, and
-    whose mappings refuse a key given twice (YAML would silently keep the last one)."""
+    """The one YAML loader of configs and `--set` values: a SafeLoader that resolves plain scalars by the YAML 1.2
+    core schema (not PyYAML's YAML 1.1: no octal `010`, base-60 `1:30`, `1_000`, `0b10`, yes/no/on/off booleans,
+    dates or `=`; `1e3` is a float), whose documents are checked for alias expansion and cycles before they are
+    built, and whose mappings refuse a key given twice (YAML would silently keep the last one)."""
+
+    yaml_implicit_resolvers: dict = {}  # a clean slate: only the core schema's resolvers, added below
+
+    def construct_yaml_int(self, node):
+        text = self.construct_scalar(node)
+        if not _INT12.fullmatch(text):
+            raise yaml.constructor.ConstructorError(None, None, f"{text!r} is not a YAML 1.2 integer", node.start_mark)
+        if text.startswith("0o"):
+            return int(text[2:], 8)
+        if text.startswith("0x"):
+            return int(text[2:], 16)
+        return int(text, 10)  # 010 is ten, as YAML 1.2 (and Python's int("010")) read it
+
+    def construct_yaml_float(self, node):
+        text = self.construct_scalar(node)
+        if not _FLOAT12.fullmatch(text):
+            raise yaml.constructor.ConstructorError(None, None, f"{text!r} is not a YAML 1.2 number", node.start_mark)
+        lowered = text.lower()
+        if lowered.endswith(".inf"):
+            return -math.inf if lowered.startswith("-") else math.inf
+        if lowered == ".nan":
+            return math.nan
+        return float(text)
 
     def construct_mapping(self, node, deep=False):
         if isinstance(node, yaml.MappingNode):
@@ -96,6 +134,34 @@ class _BoundedLoader(yaml.SafeLoader):
                     raise _YamlDuplicateKey(line, key, seen[ident])
                 seen[ident] = line
         return super().construct_mapping(node, deep=deep)
+
+
+_BoundedLoader.add_constructor("tag:yaml.org,2002:int", _BoundedLoader.construct_yaml_int)
+_BoundedLoader.add_constructor("tag:yaml.org,2002:float", _BoundedLoader.construct_yaml_float)
+for _tag, _regexp, _first in (  # YAML 1.2.2, 10.3.2 (core schema), plus `<<` merge keys
+        ("tag:yaml.org,2002:null", r"~|null|Null|NULL|", ["~", "n", "N", ""]),
+        ("tag:yaml.org,2002:bool", r"true|True|TRUE|false|False|FALSE", list("tTfF")),
+        ("tag:yaml.org,2002:int", _INT12.pattern, list("-+0123456789")),
+        ("tag:yaml.org,2002:float", _FLOAT12.pattern, list("-+0123456789.")),
+        ("tag:yaml.org,2002:merge", r"<<", ["<"])):
+    _BoundedLoader.add_implicit_resolver(_tag, re.compile(f"^(?:{_regexp})$"), _first)
+
+
+class _Dumper(yaml.SafeDumper):
+    """A SafeDumper that quotes every string that YAML 1.1 *or* 1.2 would read as something else (`1e3`, `0o17`
+    as well as `yes`, `010`), so what it writes reads back the same with this loader and with any other."""
+
+    yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeDumper.yaml_implicit_resolvers.items()}
+
+
+for _tag, _regexp, _first in (("tag:yaml.org,2002:int", _INT12.pattern, list("-+0123456789")),
+                              ("tag:yaml.org,2002:float", _FLOAT12.pattern, list("-+0123456789."))):
+    _Dumper.add_implicit_resolver(_tag, re.compile(f"^(?:{_regexp})$"), _first)
+
+
+def dump_yaml(data: Any, **kwargs) -> str:
+    """YAML text of `data` (yaml.safe_dump's options) that `read_yaml` reads back as the same values."""
+    return yaml.dump(data, Dumper=_Dumper, **{"sort_keys": False, "allow_unicode": True, **kwargs})
 
 
 def _expanded_size(node: yaml.Node, memo: dict[int, int], active: set[int], limit: int) -> int:
@@ -253,8 +319,19 @@ def check_choices(obj: Any, section: str) -> None:
             raise DegustaError(f"{where}: expected one of {choices}, got {_show(value)}")
 
 
-def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix: str = "") -> T:
-    """Build dataclass `cls` from `data`, checking unknown keys, missing keys and types."""
+def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix: str = "", *,
+              probe_paths: bool | None = None) -> T:
+    """Build dataclass `cls` from `data`, checking unknown keys, missing keys and types.
+
+    Path keys (`PATH_KEYS`) have `~` expanded and are checked (`fileio.check_path`). `probe_paths=False`: their text
+    only, not what is on disk now: for a record of paths as they were (a fine-tuning record's dataset may have moved).
+    """
+    if probe_paths is not None:
+        token = _PROBE_PATHS.set(probe_paths)
+        try:
+            return from_dict(cls, data, where, prefix)
+        finally:
+            _PROBE_PATHS.reset(token)
     if not isinstance(data, dict):
         raise DegustaError(f"{where}: {prefix.rstrip('.') or 'config'}: expected a mapping, got {_show(data)}")
     if hasattr(cls, "section_class"):  # a section whose class one of its keys picks (backend: {name: hf} -> HFConfig)
@@ -327,8 +404,48 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-_BOOL_HINT = (" (YAML reads an unquoted on, off, yes, no, true or false as a boolean: write the word in quotes, "
-              "e.g. --set \"key='off'\")")
+_BOOL_HINT = (" (YAML reads an unquoted true or false as a boolean: write the word in quotes, "
+              "e.g. --set \"key='true'\")")
+
+PATH_KEYS = ("dataset", "out", "episodes", "predictions", "checkpoint", "run_dir", "export", "cache", "ledger",
+             "styles", "adapter", "path", "config", "model.name", "backend.model")
+"""The keys that hold a file or folder path in every config kind (one spelling per concept, docs/configs.md): a key
+whose last part (or, dotted, whose end) is one of these has `~` / `~user` expanded and is checked by
+`fileio.check_path`, with one line naming the key and the path. `model.name` and `backend.model` take a hub id or a
+folder: the check refuses only what could be neither. tests/test_hardening_paths2.py lists every string key of every
+config kind, so a new path key cannot be left out silently."""
+
+
+def path_key(key: str) -> bool:
+    """Whether the config key `key` (dotted, e.g. `trainer.run_dir`, `methods[0].config`) holds a path."""
+    return any(key == k or key.endswith("." + k) for k in PATH_KEYS)
+
+
+_PROBE_PATHS = contextvars.ContextVar("degusta_probe_paths", default=True)
+"""Whether path keys are probed on disk (from_dict's `probe_paths`); their text is always checked."""
+
+
+def _checked_path(value: str, where: str, key: str) -> str:
+    text, problem = check_path(value, probe=_PROBE_PATHS.get())
+    if problem:
+        raise DegustaError(f"{where}: {key}: {shown_path(value)}: {problem}")
+    return text
+
+
+_YAML11_NUMBER = re.compile(r"[-+]?(0b[01_]+|[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?|[0-9_]*_[0-9_]*(\.[0-9_]*)?"
+                            r"([eE][-+]?[0-9]+)?)")
+
+
+def _yaml12_hint(tp: Any, value: Any) -> str:
+    """What YAML 1.1 read differently, for a number or boolean key given text (configs are read as YAML 1.2)."""
+    if not isinstance(value, str):
+        return ""
+    if tp is bool and value.lower() in ("yes", "no", "on", "off", "y", "n"):
+        return " (configs are read as YAML 1.2, where only true and false are booleans: write true or false)"
+    if tp in (int, float) and _YAML11_NUMBER.fullmatch(value.strip()):
+        return (" (configs are read as YAML 1.2, which reads base-60 1:30, 1_000 and 0b10 as text, not numbers: "
+                "write the number in decimal digits, e.g. 90 or 1000)")
+    return ""
 
 
 def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
@@ -378,7 +495,7 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
             return value
     elif tp is float:
         if isinstance(value, str) and _EXPONENT.fullmatch(value.strip()):
-            value = float(value)  # 6e-3: YAML 1.1 (PyYAML) reads a number without a "." as text
+            value = float(value)  # '6e-3' as text (see _EXPONENT)
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             try:
                 out = float(value)
@@ -389,7 +506,11 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
             return out
     elif tp is str:
         if isinstance(value, str):
-            return value
+            bad = not_utf8(value)
+            if bad:  # a --set value from argv with undecodable bytes, or a "\udcff" escape in the YAML
+                raise DegustaError(f"{where}: {key}: {shown_path(value)}: is not UTF-8 ({bad}); "
+                                   + (NOT_UTF8 if path_key(key) else "give UTF-8 text"))
+            return _checked_path(value, where, key) if path_key(key) else value
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             # YAML reads 1e3, 010, 0x1F, 1_000 as numbers: their text is lost, so str(value) could name
             # another file or model than the one written. Refuse and ask for quotes.
@@ -399,7 +520,7 @@ def _convert(tp: Any, value: Any, where: str, key: str) -> Any:
         raise DegustaError(f"{where}: {key}: expected a string, got {_kind(value)} {_show(value)}{hint}")
     else:
         return value
-    raise DegustaError(f"{where}: {key}: expected {_name(tp)}, got {_show(value)}")
+    raise DegustaError(f"{where}: {key}: expected {_name(tp)}, got {_show(value)}{_yaml12_hint(tp, value)}")
 
 
 def _show(value: Any, n: int = 60) -> str:

@@ -10,6 +10,13 @@ file, a folder, a symbolic-link loop, a device, non-UTF-8 bytes, invalid JSON, N
 that overflows to infinity, an integer of more than MAX_INT_DIGITS digits, a key given twice in one
 object, nesting too deep for the parser, a lone-surrogate escape, a file or line over the size limits.
 
+Every path a user gives (a flag, a config's path key, a dataset or model folder) is checked once, where it is first
+touched, by `check_path` / `user_path`: `~` expanded, and anything that would make `pathlib` or `os` raise (a NUL
+byte, a name or path longer than the file system takes, a parent that is a file, a link loop, no permission) or
+that the toolkit could not write back into its UTF-8 records (non-UTF-8 bytes) is one `DegustaError` naming the
+flag or key and the path. The readers (`open_regular`) and writers (`target_problem`, `atomic_open`) run the same
+check, so a library caller gets the same one line; and no JSON writer ever writes a record its reader refuses.
+
 `file_sha256` and `stat_tree` identify files (by their bytes, or cheaply by size and time): the dataset
 fingerprint (`scene.dataset.dataset_identity`) and compare's staleness records are built from them.
 """
@@ -17,6 +24,7 @@ fingerprint (`scene.dataset.dataset_identity`) and compare's staleness records a
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import math
@@ -40,11 +48,173 @@ def _current_umask() -> int:
 UMASK = _current_umask()  # the process's umask, read once (os.umask can only be read by setting it)
 
 
+NAME_MAX = 255
+"""Most bytes of one file or folder name (Linux and macOS file systems; `os.pathconf` is asked first)."""
+PATH_MAX = 4096
+"""Most bytes of a path the kernel takes (Linux PATH_MAX, its closing NUL included): longer ones are refused."""
+
+
+def shown_path(path: Any, limit: int = 160) -> str:
+    """`path` for a one-line message: as it is when it is plain text, else escaped (a NUL byte, a control character,
+    non-UTF-8 bytes show as \\x00, \\n, \\udcff); a long one is cut to `limit` characters and says its length."""
+    try:
+        text = os.fsdecode(os.fspath(path))
+    except TypeError:
+        return repr(path)[:limit]
+    shown = text if text.isprintable() and not_utf8(text) is None else repr(text)[1:-1]
+    if len(shown) > limit:
+        tail = 24 if limit >= 80 else 0
+        shown = f"{shown[:limit - tail]}...{shown[len(shown) - tail:] if tail else ''} ({len(text):,} characters)"
+    return shown
+
+
+def not_utf8(text: str) -> str | None:
+    """None for text that encodes as UTF-8; else what does not ("byte 0xff": an undecodable byte Python kept as a
+    surrogate escape, as os.fsdecode and sys.argv do; "U+D800": any other lone surrogate)."""
+    try:
+        text.encode("utf-8")
+        return None
+    except UnicodeEncodeError as e:
+        code = ord(text[e.start])
+        return f"byte {code - 0xDC00:#04x}" if 0xDC80 <= code <= 0xDCFF else f"U+{code:04X}"
+
+
+NOT_UTF8 = ("degusta writes paths into UTF-8 records (JSON, YAML, reports) that it must read back, so it takes "
+            "UTF-8 paths only: rename it (or copy it to a UTF-8 name)")
+
+
+def _name_max(text: str) -> int:
+    folder = os.path.dirname(os.path.abspath(text))
+    for _ in range(64):
+        if os.path.isdir(folder):
+            try:
+                return int(os.pathconf(folder, "PC_NAME_MAX")) or NAME_MAX
+            except (OSError, ValueError):
+                return NAME_MAX
+        if os.path.dirname(folder) == folder:
+            break
+        folder = os.path.dirname(folder)
+    return NAME_MAX
+
+
+def _file_parent(text: str) -> str | None:
+    """The first parent of `text` (from the top) that exists and is not a folder."""
+    parts = Path(text).parents
+    for parent in reversed(parts):
+        try:
+            if os.path.lexists(parent) and not os.path.isdir(parent):
+                return str(parent)
+        except (OSError, ValueError):
+            return None
+    return None
+
+
+def path_problem(path: Any, probe: bool = True) -> str | None:
+    """Why `path` cannot name a file or folder whatever a command does with it, or None. Never raises.
+
+    From its text: a NUL byte; non-UTF-8 (see NOT_UTF8); a name over the file system's limit (NAME_MAX bytes); a
+    path over PATH_MAX bytes. From probing it (stat only, nothing written): a parent that is a file, a symbolic-link
+    loop, a folder that may not be searched (never as root), a broken symbolic link (nothing to read; writing would
+    replace the link, not make what it points to), a link that resolves to a non-UTF-8 name.
+    A missing path is not a problem here: readers say "not found", writers make it. `probe=False`: the text
+    checks only (a reader that stats the file itself and says what it finds).
+    """
+    try:
+        text = os.fspath(path)
+    except TypeError:
+        return f"expected a path, got {type(path).__name__}"
+    if isinstance(text, bytes):
+        text = os.fsdecode(text)
+    if "\0" in text:
+        return "holds a NUL byte (\\0), which no file name may contain"
+    bad = not_utf8(text)
+    if bad:
+        return f"is not UTF-8 ({bad}); {NOT_UTF8}"
+    name_max = _name_max(text)
+    for part in text.split(os.sep):
+        size = len(part.encode("utf-8"))
+        if size > name_max:
+            return (f"holds a name of {size:,} bytes ({shown_path(part, 40)}); the file system takes names of at most "
+                    f"{name_max} bytes")
+    size = len(os.path.abspath(text).encode("utf-8"))
+    if size >= PATH_MAX:
+        return f"is {size:,} bytes long as an absolute path; paths may be at most {PATH_MAX - 1:,} bytes"
+    if not probe:
+        return None
+    try:
+        os.stat(text)
+        exists = True
+    except FileNotFoundError:
+        exists = False
+        if os.path.islink(text):
+            try:
+                to = f" (to {shown_path(os.readlink(text), 80)})"
+            except OSError:
+                to = ""
+            return f"is a broken symbolic link{to}; remove the link or give another path"
+    except NotADirectoryError:
+        parent = _file_parent(text)
+        return f"a parent, {shown_path(parent)}, is a file, not a folder" if parent else "a parent is not a folder"
+    except PermissionError:
+        return "cannot be reached: a folder on the way may not be searched (permission denied)"
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "goes through a symbolic-link loop"
+        return f"cannot be used ({e.strerror or e})"
+    except ValueError as e:  # pragma: no cover - the text checks above catch what os.stat refuses
+        return f"is not a valid path ({e})"
+    if exists:
+        real = os.path.realpath(text)
+        bad = not_utf8(real)
+        if bad and not_utf8(os.path.abspath(text)) is None:
+            return f"resolves (through a symbolic link) to {shown_path(real)}, which is not UTF-8 ({bad}); {NOT_UTF8}"
+    return None
+
+
+def check_path(value: Any, probe: bool = True) -> tuple[str, str | None]:
+    """The one check of a path a user gives: (its text with a leading `~` or `~user` expanded, why it cannot be
+    used or None). Used by the CLI's path flags, the config loader's path keys and `user_path`. `probe=False`:
+    the text checks only (`path_problem`)."""
+    try:
+        text = os.fsdecode(os.fspath(value))
+    except TypeError:
+        return str(value), f"expected a path, got {type(value).__name__}"
+    if "\0" in text:
+        return text, path_problem(text)
+    if text.startswith("~"):
+        head = text.split(os.sep, 1)[0]
+        bad = not_utf8(head)
+        if bad:
+            return text, f"is not UTF-8 ({bad}); {NOT_UTF8}"
+        expanded = os.path.expanduser(text)
+        if expanded.startswith("~"):
+            if head == "~":
+                return text, "starts with ~, but there is no home folder to expand it to (HOME is not set)"
+            return text, (f"starts with {head}, but there is no user {head[1:]!r} whose home it could name (for a "
+                          f"folder called {head}, write ./{head})")
+        text = expanded
+    return text, path_problem(text, probe=probe)
+
+
+def user_path(value: Any, key: str) -> Path:
+    """`value` (a path a user gave through `key`: a flag, a config key, an argument) with `~` expanded, or one
+    DegustaError "KEY: PATH: why" (check_path)."""
+    if not str(value).strip():
+        raise DegustaError(f"{key}: the path is empty; give a file or folder")
+    text, problem = check_path(value)
+    if problem:
+        raise DegustaError(f"{key}: {shown_path(value)}: {problem}")
+    return Path(text)
+
+
 def target_problem(path: str | os.PathLike) -> str | None:
-    """Why a file cannot be written at `path` (a folder there, a parent that is a file), or None."""
-    path = Path(path)
+    """Why a file cannot be written at `path` (a folder there, a parent that is a file, any `path_problem`), or None."""
     if str(path) in ("", "."):
         return "is an empty path; give the path of a file to write"
+    problem = path_problem(path)
+    if problem:
+        return problem
+    path = Path(path)
     if path.is_dir():
         return "is a folder; give the path of a file to write"
     try:
@@ -74,10 +244,10 @@ def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[Any]:
     A path that cannot be written (a folder, under a file, a read-only or virtual file system, a full
     disk) raises DegustaError naming the path and the reason; no temporary file is left behind.
     """
-    path = Path(path)
     problem = target_problem(path)
     if problem:
-        raise DegustaError(f"{path}: {problem}")
+        raise DegustaError(f"{shown_path(path)}: {problem}")
+    path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -95,6 +265,9 @@ def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[Any]:
             os.unlink(tmp)
         if isinstance(e, OSError):
             raise DegustaError(f"{path}: {_why(e)}") from None
+        if isinstance(e, UnicodeEncodeError):  # text holding a lone surrogate (a non-UTF-8 name): never half-written
+            raise DegustaError(f"{shown_path(path)}: the text to write is not UTF-8 ({not_utf8(e.object)}), so "
+                               "nothing was written; " + NOT_UTF8) from None
         raise
 
 
@@ -191,10 +364,10 @@ def check_output_file(out: str | os.PathLike, inputs: Iterable[tuple[str, Any]] 
     if isinstance(out, str) and out.endswith(("/", os.sep)):
         raise DegustaError(f"{key}: {out} ends in a slash, a folder; give the path of a file to write (e.g. "
                            f"{out}predictions.jsonl)")
-    path = Path(out)
-    problem = target_problem(path)
+    problem = target_problem(out)
     if problem:
-        raise DegustaError(f"{key}: {path}: {problem}")
+        raise DegustaError(f"{key}: {shown_path(out)}: {problem}")
+    path = Path(out)
     refuse_overwriting_inputs(out, inputs, key, datasets)
     folder = path.parent
     while not folder.exists() and folder != folder.parent:
@@ -221,14 +394,50 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         f.write(data)
 
 
+def _refuse_unreadable(path: str | os.PathLike, text: str, obj: Any, where: str = "") -> None:
+    """Refuse to write JSON that `read_json` / `read_jsonl` would refuse: a string holding a lone surrogate (a
+    non-UTF-8 file name, as os.fsdecode gives it), which json.dumps escapes as \\udcff. The JSON writers call this
+    before the file is opened, so a record that said it was written can always be read back."""
+    if not _SURROGATE.search(text):
+        return
+    field = _non_utf8_field(obj)
+    if field is not None:
+        name, bad = field
+        raise DegustaError(f"{shown_path(path)}: {where}{f'field {name!r}' if name else 'a value'} is not UTF-8 "
+                           f"({bad}), so the record was not written (its reader would refuse it); {NOT_UTF8}")
+
+
+def _non_utf8_field(obj: Any) -> tuple[str, str] | None:
+    """(dotted name, what) of the first string (key or value) of `obj` that is not UTF-8, or None."""
+    stack: list[tuple[Any, str]] = [(obj, "")]
+    while stack:
+        o, name = stack.pop()
+        if isinstance(o, str):
+            bad = not_utf8(o)
+            if bad:
+                return name, bad
+        elif isinstance(o, dict):
+            for k, v in o.items():
+                sub = f"{name}.{k}" if name else str(k)
+                stack.append((k, sub))
+                stack.append((v, sub))
+        elif isinstance(o, (list, tuple)):
+            stack.extend((v, f"{name}[{i}]") for i, v in enumerate(o))
+    return None
+
+
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
+    text = json.dumps(obj, indent=2) + "\n"
+    _refuse_unreadable(path, text, obj)
+    atomic_write_text(path, text)
 
 
 def atomic_write_jsonl(path: str | os.PathLike, rows: Iterable[Any]) -> None:
     with atomic_open(path, "w") as f:
-        for row in rows:
-            f.write(json.dumps(row) + "\n")
+        for i, row in enumerate(rows, start=1):
+            line = json.dumps(row)
+            _refuse_unreadable(path, line, row, where=f"line {i}: ")
+            f.write(line + "\n")
 
 
 # Limits of the readers: anything beyond them is refused with a DegustaError naming the file (and line).
@@ -363,15 +572,20 @@ def _loads(text: str) -> Any:
 
 def open_regular(path: Path, limit: int, what: str = "a file"):
     """Open `path` for binary reading after checking that it is a regular file (`what`, for messages) of at
-    most `limit` bytes; anything else (missing, a folder, a symlink loop, a device) is a one-line DegustaError."""
+    most `limit` bytes; anything else (missing, a folder, a symlink loop, a device, any `path_problem`) is a one-line
+    DegustaError."""
+    problem = path_problem(path, probe=False)  # what makes os.stat raise other than OSError, or ENAMETOOLONG
+    if problem:
+        raise DegustaError(f"{shown_path(path)}: {problem}")
+    path = Path(path)
     try:
         st = path.stat()
     except FileNotFoundError:
         if path.is_symlink():
             raise DegustaError(f"{path}: broken symbolic link (its target does not exist)") from None
         raise DegustaError(f"{path}: file not found") from None
-    except OSError as e:  # a symlink loop (ELOOP), a path through a file (ENOTDIR), no permission ...
-        raise DegustaError(f"{path}: cannot read ({e.strerror or e})") from None
+    except (OSError, ValueError) as e:  # a symlink loop (ELOOP), a path through a file (ENOTDIR), no permission ...
+        raise DegustaError(f"{shown_path(path)}: cannot read ({getattr(e, 'strerror', None) or e})") from None
     if stat.S_ISDIR(st.st_mode):
         raise DegustaError(f"{path}: is a folder, expected {what}")
     if not stat.S_ISREG(st.st_mode):
@@ -384,6 +598,19 @@ def open_regular(path: Path, limit: int, what: str = "a file"):
         raise DegustaError(f"{path}: cannot read ({e.strerror or e})") from None
 
 
+def read_at_most(f, limit: int, chunk: int = 2**20) -> bytes:
+    """Up to `limit` bytes of `f`, read in chunks: memory grows with what the file holds (a plain `f.read(limit)`
+    reserves `limit` bytes at once, 256 MiB for every small JSON file)."""
+    parts, size = [], 0
+    while size < limit:
+        part = f.read(min(chunk, limit - size))
+        if not part:
+            break
+        parts.append(part)
+        size += len(part)
+    return b"".join(parts)
+
+
 def read_json(path: str | os.PathLike) -> Any:
     """Read a JSON file; a missing, unreadable or malformed file raises DegustaError naming it (and the line).
 
@@ -393,7 +620,7 @@ def read_json(path: str | os.PathLike) -> Any:
     path = Path(path)
     with open_regular(path, MAX_JSON_BYTES) as f:
         try:
-            data = f.read(MAX_JSON_BYTES + 1)
+            data = read_at_most(f, MAX_JSON_BYTES + 1)
         except OSError as e:
             raise DegustaError(f"{path}: cannot read ({e.strerror or e})") from None
     if len(data) > MAX_JSON_BYTES:
@@ -458,18 +685,25 @@ def file_sha256(path: str | os.PathLike) -> str | None:
         with Path(path).open("rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
-    except OSError:
+    except (OSError, ValueError):
         return None
     return h.hexdigest()
 
 
+def _utf8_name(name: str) -> str:
+    """A file name as UTF-8 text for an identity record: undecodable bytes as \\xff escapes (never a lone surrogate,
+    which no JSON reader of the toolkit accepts); UTF-8 names are unchanged."""
+    return os.fsencode(name).decode("utf-8", "backslashreplace")
+
+
 def stat_tree(path: str | os.PathLike, limit: int = 5000) -> list:
     """[relative path, size, mtime_ns] of a file, or of the files under a folder (sorted, at most `limit`):
-    a cheap identity of a checkpoint or picture folder, without reading the bytes."""
+    a cheap identity of a checkpoint or picture folder, without reading the bytes. Names that are not UTF-8 are
+    written with \\xff escapes (`_utf8_name`), so the identity can be stored in a JSON record and read back."""
     path = Path(path)
     if path.is_file():
         st = path.stat()
-        return [[path.name, st.st_size, st.st_mtime_ns]]
+        return [[_utf8_name(path.name), st.st_size, st.st_mtime_ns]]
     out = []
     for root, dirs, files in os.walk(path):
         dirs.sort()
@@ -479,7 +713,7 @@ def stat_tree(path: str | os.PathLike, limit: int = 5000) -> list:
                 st = full.stat()
             except OSError:
                 continue
-            out.append([str(full.relative_to(path)), st.st_size, st.st_mtime_ns])
+            out.append([_utf8_name(str(full.relative_to(path))), st.st_size, st.st_mtime_ns])
             if len(out) >= limit:
                 return out
     return out

@@ -40,7 +40,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError, Terminated
-from degusta_learn.fileio import UMASK, refuse_overwriting_inputs
+from degusta_learn.fileio import UMASK, path_problem, refuse_overwriting_inputs, shown_path
+from degusta_learn.locks import hold
+from degusta_learn.writeerrors import write_failure
 
 
 @dataclass(frozen=True)
@@ -125,6 +127,7 @@ def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = Tr
     """
     if not str(target).strip():
         raise DegustaError("the output folder path is empty; give the folder to write")
+    _refuse_path_problem(target)
     target = Path(target)
     if target.is_symlink():
         try:
@@ -158,6 +161,14 @@ def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = Tr
     return target
 
 
+def _refuse_path_problem(target: str | os.PathLike, key: str | None = None) -> None:
+    """One line (naming `key` when given) for a target no folder can be made at (fileio.path_problem: a NUL byte, a
+    name or path too long, a parent that is a file, non-UTF-8, a broken link ...), before `pathlib` is asked anything."""
+    problem = path_problem(target)
+    if problem:
+        raise DegustaError(f"{f'{key}: ' if key else ''}{shown_path(target)}: {problem}")
+
+
 def refuse_replacing_inputs(target: str | os.PathLike, kind: OutputKind, inputs: Sequence[tuple[str, object]] = (),
                             datasets: Sequence[object] = (), writes: Sequence[str] = (), keep: Sequence[str] = (),
                             key: str = "out") -> None:
@@ -167,6 +178,7 @@ def refuse_replacing_inputs(target: str | os.PathLike, kind: OutputKind, inputs:
     (`kind.patterns`) but `keep`: none of them may be, or hold, one of `inputs` ((what, path) pairs) or a
     dataset file (fileio.refuse_overwriting_inputs, the same guard the file outputs use).
     """
+    _refuse_path_problem(target, key)
     target = Path(target)
     names = set(writes)
     if target.is_dir() and not target.is_symlink():
@@ -226,9 +238,19 @@ def write_folder(target: str | os.PathLike, kind: OutputKind, keep: Sequence[str
     """Yield an empty staging folder; on success its content becomes `target` whole (see module docstring).
 
     `keep`: entries of an existing target carried into the new one (hard links) unless the body writes
-    them itself. An OSError while writing becomes a DegustaError naming the target.
+    them itself. An OSError while writing (or a failed write torch / safetensors report in their own exception
+    types, `writeerrors.write_failure`) becomes a DegustaError naming the target.
+    The target is locked for the whole write (`locks.hold`: `.NAME.degusta-lock` beside it): a second writer of
+    the same folder, in any process, is refused in one line naming the first.
     """
     target = check_target(target, kind, replace)
+    with hold(target, kind.what), _write_folder(target, kind, keep, replace) as stage:
+        yield stage
+
+
+@contextlib.contextmanager
+def _write_folder(target: Path, kind: OutputKind, keep: Sequence[str], replace: bool) -> Iterator[Path]:
+    target = check_target(target, kind, replace)  # again, under the lock: a writer that just finished counts
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.{os.getpid()}-", suffix=".tmp", dir=target.parent))
@@ -245,6 +267,11 @@ def write_folder(target: str | os.PathLike, kind: OutputKind, keep: Sequence[str
                 yield stage
             except OSError as e:
                 raise DegustaError(f"{target}: cannot write the {kind.what} ({e})") from None
+            except Exception as e:  # noqa: BLE001 - only a failed write (torch's RuntimeError, SafetensorError)
+                cause = write_failure(e)
+                if cause is None:
+                    raise
+                raise DegustaError(f"{target}: cannot write the {kind.what} ({cause})") from None
             try:
                 _commit(stage, target, kind)
             except OSError as e:

@@ -32,6 +32,14 @@ What `fit` does, in order:
    its last validation and a finished run can be extended with a larger `max_epochs` / `max_steps`.
    Every checkpoint is written atomically *inside the run folder* (`AtomicCheckpointIO`: a hidden temp file
    beside it, fsync, `os.replace`), so a kill at any moment leaves the previous complete checkpoint.
+   Ctrl-C and SIGTERM, which Lightning catches and turns into an exit status of 1 (or 0), are raised again
+   (`_fit_or_interrupt`): the CLI exits 130 / 143 with one line, nothing is exported, the run resumes.
+   A failed write anywhere in the run (a full disk, a file-size limit: checkpoints, loggers, config.yaml) is one
+   DegustaError naming the file and the cause (degusta_learn/writeerrors.py); the previous last.ckpt stays whole.
+
+The run folder is locked for the whole run (`training_run` and `fit`, rank 0; degusta_learn/locks.py: a lock
+file `.<run_name>.degusta-lock` beside it): a second run into the same folder is refused in one line naming the
+first (pid, command, start time), and never removes a folder the first one made.
 
 Checkpoints must load weights-only: a LightningModule that calls `save_hyperparameters` must pass plain
 dicts / lists / numbers / strings only (e.g. `dataclasses.asdict(cfg)`), never dataclasses or Paths.
@@ -45,9 +53,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import os
 import shutil
+import signal
 import sys
+import threading
 import tempfile
 import warnings
 import zipfile
@@ -56,11 +67,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
-
-from degusta_learn.config import bounded, check_choices, read_yaml, seed_field, to_dict
-from degusta_learn.errors import DegustaError, MachineMismatch
+from degusta_learn.config import bounded, check_choices, dump_yaml, read_yaml, seed_field, to_dict
+from degusta_learn.errors import DegustaError, MachineMismatch, Terminated
 from degusta_learn.fileio import atomic_write_text
+from degusta_learn.locks import hold, remove_made
+from degusta_learn.writeerrors import writing
 
 LAST = "last.ckpt"
 BEST = "best.ckpt"
@@ -307,16 +318,17 @@ def build_loggers(cfg: TrainerConfig, run: Path) -> list:
         if name == "csv":
             from lightning.pytorch.loggers import CSVLogger
 
-            made.append(CSVLogger(save_dir=run, name="csv"))
+            made.append(_guarded(CSVLogger, "CSV log", run / "csv")(save_dir=run, name="csv"))
         elif name == "tensorboard":
             from lightning.pytorch.loggers import TensorBoardLogger
 
-            made.append(TensorBoardLogger(save_dir=run, name="tb", default_hp_metric=False))
+            made.append(_guarded(TensorBoardLogger, "TensorBoard log", run / "tb")(
+                save_dir=run, name="tb", default_hp_metric=False))
         elif name == "wandb":
             from lightning.pytorch.loggers import WandbLogger
 
-            made.append(WandbLogger(name=cfg.run_name, project="degusta", save_dir=str(run),
-                                    offline=cfg.tracking_offline))
+            made.append(_guarded(WandbLogger, "W&B log", run / "wandb")(
+                name=cfg.run_name, project="degusta", save_dir=str(run), offline=cfg.tracking_offline))
         elif name == "mlflow":
             from lightning.pytorch.loggers import MLFlowLogger
 
@@ -325,8 +337,128 @@ def build_loggers(cfg: TrainerConfig, run: Path) -> list:
                 uri = (run / "mlruns").resolve().as_uri()
             else:
                 uri = os.environ["MLFLOW_TRACKING_URI"]
-            made.append(MLFlowLogger(experiment_name="degusta", run_name=cfg.run_name, tracking_uri=uri))
+            made.append(_guarded(MLFlowLogger, "MLflow log", run / "mlruns")(
+                experiment_name="degusta", run_name=cfg.run_name, tracking_uri=uri))
     return made
+
+
+_GUARDED: dict[type, type] = {}
+
+
+def _guarded(cls: type, what: str, where: Path) -> Any:
+    """A constructor of `cls` (a Lightning logger) whose writes fail in one line (`writeerrors.writing`: "<where>:
+    cannot write the <what> (No space left on device); training stopped, <run>/last.ckpt keeps ..."); a failure
+    while Lightning finalizes a run that is failing already is dropped (the first error is the one to report).
+    The CSV logger's metrics.csv also stays whole: a failed append is cut back to its last complete row and a
+    header change rewrites the file atomically (`_SafeMetrics`), so `validation_curve` reads it after a resume."""
+    if cls not in _GUARDED:
+        def guard(name):
+            def method(self, *args, **kwargs):
+                with writing(self._degusta_where, self._degusta_what, after=_resume_note(self._degusta_run / LAST)):
+                    return getattr(super(sub, self), name)(*args, **kwargs)
+            method.__name__ = name
+            return method
+
+        def finalize(self, status: str) -> None:
+            try:
+                with writing(self._degusta_where, self._degusta_what, after=_resume_note(self._degusta_run / LAST)):
+                    super(sub, self).finalize(status)
+            except DegustaError:
+                if status == "success":
+                    raise
+
+        def experiment(self):
+            with writing(self._degusta_where, self._degusta_what, after=_resume_note(self._degusta_run / LAST)):
+                exp = super(sub, self).experiment
+            if hasattr(exp, "metrics_file_path") and not isinstance(exp, _SafeMetrics):
+                exp.__class__ = _safe_metrics(type(exp))
+            return exp
+
+        body = {n: guard(n) for n in ("log_metrics", "log_hyperparams", "log_graph", "save", "after_save_checkpoint")
+                if hasattr(cls, n)}
+        sub = type(cls.__name__, (cls,), {**body, "finalize": finalize, "experiment": property(experiment),
+                                           "__module__": cls.__module__, "__qualname__": cls.__qualname__})
+        _GUARDED[cls] = sub
+    sub = _GUARDED[cls]
+
+    def make(**kwargs):
+        logger = sub(**kwargs)
+        logger._degusta_where, logger._degusta_what, logger._degusta_run = where, what, where.parent
+        return logger
+
+    return make
+
+
+class _SafeMetrics:
+    """Marks a CSV metrics writer made safe by `_safe_metrics`."""
+
+
+_SAFE_METRICS: dict[type, type] = {}
+
+
+def _safe_metrics(base: type) -> type:
+    """Lightning's CSV `ExperimentWriter` (appends rows to metrics.csv, rewrites it in place when a new column
+    appears) with a metrics.csv that a failed write leaves as it was: the append is cut back to the file's
+    previous end (or the new file removed), the rewrite goes through a temp file and `os.replace`."""
+    if base in _SAFE_METRICS:
+        return _SAFE_METRICS[base]
+    import csv
+
+    class SafeMetrics(base, _SafeMetrics):
+        def save(self) -> None:
+            if not self.metrics:
+                return
+            path, keys = self.metrics_file_path, list(self.metrics_keys)
+            exists = os.path.isfile(path)
+            try:
+                new_keys = self._record_new_keys()
+                if new_keys and exists:
+                    self._rewrite_with_new_header(self.metrics_keys)
+                size = os.path.getsize(path) if exists else None
+                try:
+                    with open(path, "a" if exists else "w", newline="", encoding="utf-8") as f:
+                        writer = csv.DictWriter(f, fieldnames=self.metrics_keys)
+                        if not exists:
+                            writer.writeheader()
+                        writer.writerows(self.metrics)
+                except BaseException:
+                    with contextlib.suppress(OSError):
+                        if size is None:
+                            os.unlink(path)
+                        else:
+                            os.truncate(path, size)
+                    raise
+            except BaseException:
+                self.metrics_keys[:] = keys  # the header on disk is still the old one
+                raise
+            self.metrics = []
+
+        def _rewrite_with_new_header(self, fieldnames: list[str]) -> None:
+            path = self.metrics_file_path
+            with open(path, newline="", encoding="utf-8") as f:
+                rows = list(csv.DictReader(f))
+            fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=f"{TMP_PREFIX}metrics.csv.")
+            try:
+                with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
+                    writer = csv.DictWriter(f, fieldnames=fieldnames)
+                    writer.writeheader()
+                    writer.writerows(rows)
+                os.chmod(tmp, 0o666 & ~_umask())
+                os.replace(tmp, path)
+            except BaseException:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+                raise
+
+    SafeMetrics.__name__ = SafeMetrics.__qualname__ = base.__name__
+    _SAFE_METRICS[base] = SafeMetrics
+    return SafeMetrics
+
+
+def _umask() -> int:
+    from degusta_learn.fileio import UMASK
+
+    return UMASK
 
 
 def validation_curve(run: Path, key: str) -> list[dict]:
@@ -463,9 +595,29 @@ def training_run(cfg: TrainerConfig, monitors: Iterable[str] | None = None) -> I
     check_trainer(cfg, monitors)
     seed_everything(cfg.seed)
     run = cfg.path
-    created = _first_missing(run)
-    with _user_errors(run, created if is_global_zero() else None):
+    zero = is_global_zero()
+    if zero:
+        _check_run_dir(cfg)  # a file in the folder's path, a finished run: refused before a lock file is made
+    with _run_lock(run, zero) as created, _user_errors(run, created):
         yield run
+
+
+@contextlib.contextmanager
+def _run_lock(run: Path, zero: bool) -> Iterator[Path | None]:
+    """Hold the run folder's lock (`locks.hold`: `<run_dir>/.<run_name>.degusta-lock`, rank 0 only) for the whole
+    block, so a second run into the same folder is refused in one line naming the first (pid, command, start);
+    yields the outermost folder of `run`'s path this run creates (None: none; `_user_errors` removes it after a
+    user mistake), and removes the folders made for the lock file once it is released, if they are empty."""
+    if not zero:
+        yield None
+        return
+    lock = None
+    try:
+        with hold(run, "run folder") as lock:
+            yield lock.made or _first_missing(run)
+    finally:
+        if lock is not None:
+            remove_made(lock)
 
 
 @contextlib.contextmanager
@@ -576,7 +728,7 @@ def prepare_run_dir(cfg: TrainerConfig, full_config: Any = None, write: bool = T
                 shutil.rmtree(stale)
             else:
                 stale.unlink()
-    atomic_write_text(run / "config.yaml", yaml.safe_dump(resolved, sort_keys=False))
+    atomic_write_text(run / "config.yaml", dump_yaml(resolved))
     return run, ckpt
 
 
@@ -643,18 +795,20 @@ def _atomic_checkpoint_io():
             if storage_options is not None:
                 raise TypeError("AtomicCheckpointIO takes no storage_options")
             path = Path(path)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f"{TMP_PREFIX}{path.name}.")
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    torch.save(checkpoint, f)
-                    f.flush()
-                    os.fsync(f.fileno())
-                os.replace(tmp, path)
-            except BaseException:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
-                raise
+            # a full disk, a file-size limit, a quota: one line naming the file; the previous one stays whole
+            with writing(path, "checkpoint", after=_resume_note(path.parent / LAST, path)):
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f"{TMP_PREFIX}{path.name}.")
+                try:
+                    with os.fdopen(fd, "wb") as f:
+                        torch.save(checkpoint, f)
+                        f.flush()
+                        os.fsync(f.fileno())
+                    os.replace(tmp, path)
+                except BaseException:
+                    with contextlib.suppress(OSError):
+                        os.unlink(tmp)
+                    raise
             with contextlib.suppress(OSError):  # make the rename itself durable
                 dfd = os.open(path.parent, os.O_RDONLY)
                 try:
@@ -831,9 +985,10 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
     ckpts = [ModelCheckpoint(dirpath=run, filename=BEST[:-5], monitor=cfg.monitor, mode=cfg.monitor_mode,
                              save_top_k=1, save_last=False, enable_version_counter=False,
                              auto_insert_metric_name=False, save_on_train_epoch_end=False)] if cfg.monitor else []
-    ckpts.append(ModelCheckpoint(dirpath=run, filename=LAST[:-5], monitor=None, save_top_k=1, save_last=False,
-                                 enable_version_counter=False, auto_insert_metric_name=False))
-    cbs = [*ckpts, *(callbacks or []), _resumed_log_step(), _validation_at_max_steps()]
+    ckpts.append(_last_checkpoint(ModelCheckpoint)(dirpath=run, filename=LAST[:-5], monitor=None, save_top_k=1,
+                                                   save_last=False, enable_version_counter=False,
+                                                   auto_insert_metric_name=False))
+    cbs = [*ckpts, *(callbacks or []), _resumed_log_step(), _validation_at_max_steps(), _interrupt_recorder()]
     if cfg.monitor:
         cbs.append(_monitor_guard(cfg.monitor))  # before EarlyStopping: its one-line error comes first
     if cfg.early_stopping_patience is not None:  # counts validations (checked after each, never at epoch end);
@@ -862,6 +1017,25 @@ def build_trainer(cfg: TrainerConfig, run: Path, callbacks: list | None = None):
         raise DegustaError(f"trainer: Lightning refused these settings ({first})") from None
 
 
+def _last_checkpoint(base: type) -> type:
+    """Lightning's ModelCheckpoint for last.ckpt, saving after every validation when `val_check_interval` is the
+    whole number 1 (validate after every batch) too: Lightning compares it with 1.0 ("once an epoch") and would
+    save only at the epoch's end, so a run stopped mid-epoch resumed from the epoch before. Same state key as a
+    plain ModelCheckpoint (runs written before resume as they did)."""
+
+    class LastCheckpoint(base):
+        def _should_save_on_train_epoch_end(self, trainer) -> bool:
+            vci, n = trainer.val_check_interval, trainer.num_val_batches
+            validates = (sum(n) if isinstance(n, list) else n) > 0  # no validation: save at the epoch's end
+            if (self._save_on_train_epoch_end is None and type(vci) is int and vci == 1 and validates
+                    and trainer.check_val_every_n_epoch == 1):
+                return False
+            return super()._should_save_on_train_epoch_end(trainer)
+
+    LastCheckpoint.__name__ = LastCheckpoint.__qualname__ = base.__name__
+    return LastCheckpoint
+
+
 def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbacks: list | None = None,
         monitors: Iterable[str] | None = None) -> Path:
     """Train `module` on `datamodule` per `cfg`; returns the run folder (with last.ckpt, best.ckpt).
@@ -875,19 +1049,105 @@ def fit(module, datamodule, cfg: TrainerConfig, full_config: Any = None, callbac
     _check_run_dir(cfg)  # before the Trainer exists: Lightning prints its banner lines when it is built
     trainer = build_trainer(cfg, cfg.path, callbacks)
     zero = trainer.is_global_zero  # known once the Trainer exists (from the launcher's environment)
-    created = _first_missing(cfg.path) if zero else None
-    run, ckpt = prepare_run_dir(cfg, full_config, write=zero)
-    seed_everything(cfg.seed)
-    with _user_errors(run, created), warnings.catch_warnings():  # the run folder holds config.yaml by design
-        warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
-        # torch >= 2.10 under DDP, once a run (seen on an H100, configs/learned_gpu.yaml): DDP keeps a reference
-        # to the gradient-accumulation node it was built with; the run uses one stream, nothing to act on
-        warnings.filterwarnings("ignore", message=r"The AccumulateGrad node's stream does not match")
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None, weights_only=True)
-    if not trainer.interrupted:  # last.ckpt is written at each validation; also keep the steps after the last one
+    with _run_lock(cfg.path, zero) as created:  # re-entrant: `training_run` holds it already
+        with _user_errors(cfg.path, created):
+            run, ckpt = prepare_run_dir(cfg, full_config, write=zero)
+        seed_everything(cfg.seed)
+        with _user_errors(run, created), warnings.catch_warnings():  # the run folder holds config.yaml by design
+            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+            # torch >= 2.10 under DDP, once a run (seen on an H100, configs/learned_gpu.yaml): DDP keeps a reference
+            # to the gradient-accumulation node it was built with; the run uses one stream, nothing to act on
+            warnings.filterwarnings("ignore", message=r"The AccumulateGrad node's stream does not match")
+            _fit_or_interrupt(trainer, run, module, datamodule=datamodule, ckpt_path=str(ckpt) if ckpt else None,
+                              weights_only=True)
+        # last.ckpt is written at each validation; also keep the steps after the last one
         trainer.save_checkpoint(run / LAST, weights_only=False)  # full state (optimizer too), to resume
+        if trainer.received_sigterm:  # a SIGTERM Lightning noticed only after the last step: the run is complete
+            raise Terminated(signal.SIGTERM)  # and saved, but the process was asked to stop (no export now)
     _note_early_stop(trainer, cfg)
     return run
+
+
+class _QuietInterrupt(logging.Filter):
+    """Drops Lightning's own lines about an interrupt ("Detected KeyboardInterrupt, attempting graceful shutdown",
+    "Received SIGTERM"): the CLI says it in one line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = str(record.msg)
+        return not any(s in text for s in ("Detected KeyboardInterrupt", "Received SIGTERM", "Bypassing SIGTERM"))
+
+
+_LIGHTNING_INTERRUPT_LOGGERS = ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero",
+                                "lightning.pytorch.trainer.connectors.signal_connector")
+
+
+def _fit_or_interrupt(trainer, run: Path, module, **kwargs) -> None:
+    """`trainer.fit(module, **kwargs)`, with Ctrl-C and SIGTERM propagated and failed writes in one line.
+
+    Lightning 2.x catches a KeyboardInterrupt (Ctrl-C, or the CLI's `Terminated` on SIGTERM), tears down, sets
+    SIGINT to "ignore" and calls `sys.exit(1)`; where no SIGTERM handler raises, its own handler only flags the
+    signal and the loop ends with `SIGTERMException`, a `SystemExit` whose status is 0 (older versions returned
+    normally with `trainer.interrupted` set). Here every such end raises the interrupt itself again (the same
+    `KeyboardInterrupt` / `Terminated` object, or `Terminated` for a flagged SIGTERM), so the CLI exits 130 / 143
+    with its one line and no export follows; SIGINT's handler is restored. The last complete `last.ckpt` stays as
+    it was (atomic saves), so the run resumes from it.
+    A failed write Lightning or a logger reports in its own exception type (a full disk, a file-size limit) becomes
+    a one-line DegustaError naming the file (`writeerrors`), with the state of last.ckpt.
+    """
+    recorder = next((c for c in trainer.callbacks if type(c).__name__ == "InterruptRecorder"), None)
+    main = threading.current_thread() is threading.main_thread()
+    sigint = signal.getsignal(signal.SIGINT) if main else None
+    quiet = _QuietInterrupt()
+    for name in _LIGHTNING_INTERRUPT_LOGGERS:
+        logging.getLogger(name).addFilter(quiet)
+    try:
+        with writing(run, "training files", after=_resume_note(run / LAST), any_oserror=False):
+            trainer.fit(module, **kwargs)
+    except SystemExit as e:  # Lightning's sys.exit(1) after an interrupt, or its SIGTERMException
+        raise _interruption(trainer, recorder, e) from None
+    finally:
+        if main and sigint is not None and signal.getsignal(signal.SIGINT) is not sigint:
+            signal.signal(signal.SIGINT, sigint)
+        for name in _LIGHTNING_INTERRUPT_LOGGERS:
+            logging.getLogger(name).removeFilter(quiet)
+    if trainer.interrupted:  # a Lightning that returns normally after an interrupt
+        raise _interruption(trainer, recorder, None)
+
+
+def _interruption(trainer, recorder, exit_: SystemExit | None) -> BaseException:
+    """What to raise for a `trainer.fit` that Lightning ended after an interrupt (`_fit_or_interrupt`)."""
+    caught = getattr(recorder, "exception", None)
+    if isinstance(caught, KeyboardInterrupt):
+        return caught
+    if trainer.received_sigterm or type(caught).__name__ == "SIGTERMException" \
+            or type(exit_).__name__ == "SIGTERMException":
+        return Terminated(signal.SIGTERM)
+    if exit_ is not None:
+        return exit_  # a sys.exit() of the module's own
+    return KeyboardInterrupt()
+
+
+def _resume_note(last: Path, failing: Path | None = None) -> str:
+    """What a message about a failed write of `failing` (a run's file) says about resuming from `last`."""
+    if not last.is_file():
+        return "; training stopped before its first checkpoint"
+    if failing is not None and Path(failing) == last:
+        return "; training stopped, the previous one is intact: free space (or raise the limit) and re-run to resume"
+    return (f"; training stopped, {last} keeps the last complete checkpoint: free space (or raise the limit) and "
+            "re-run to resume")
+
+
+def _interrupt_recorder():
+    """A callback keeping the exception Lightning ended `fit` with (`on_exception`), for `_fit_or_interrupt`."""
+    from lightning.pytorch.callbacks import Callback
+
+    class InterruptRecorder(Callback):
+        exception: BaseException | None = None
+
+        def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+            self.exception = exception
+
+    return InterruptRecorder()
 
 
 def _note_early_stop(trainer, cfg: TrainerConfig) -> None:

@@ -30,13 +30,15 @@ def test_yaml_overrides_and_nested(tmp_path):
 
 
 def test_numbers_in_exponent_notation_are_numbers_where_a_float_is_expected(tmp_path):
-    """YAML 1.1 (PyYAML) reads 6e-3 as text (it wants 6.0e-3): a float key takes it as the number it means; a
-    string key keeps the text, and other text is still refused."""
+    """Configs are read as YAML 1.2, where 6e-3 is a number (YAML 1.1, PyYAML's, read it as text): a float key
+    takes it; a string key refuses the number (its text is lost) and keeps the quoted text; other text is refused."""
     p = tmp_path / "c.yaml"
     p.write_text("method: a\nrate: 6e-3\n")
     assert load_config(Outer, p).rate == 0.006
     assert load_config(Outer, p, ["rate=-1.5E+2"]).rate == -150.0
-    assert load_config(Outer, p, ["path=6e-3"]).path == "6e-3"
+    assert load_config(Outer, p, ["path='6e-3'"]).path == "6e-3"
+    with pytest.raises(DegustaError, match="path: expected a string, got the number 0.006"):
+        load_config(Outer, p, ["path=6e-3"])
     for bad in ("6e", "e-3", "fast", "1e999"):
         with pytest.raises(DegustaError, match="rate: expected"):
             load_config(Outer, p, [f"rate={bad}"])

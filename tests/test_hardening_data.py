@@ -139,7 +139,7 @@ def test_huge_files_and_lines_are_refused(small_dataset_dir, capsys, monkeypatch
 
 def test_the_dataset_folder_itself(tmp_path, capsys):
     os.symlink(tmp_path / "loop", tmp_path / "loop")
-    assert_refused(tmp_path / "loop", capsys, "loop: not a dataset folder")
+    assert_refused(tmp_path / "loop", capsys, "loop: goes through a symbolic-link loop")  # fileio.check_path
     (tmp_path / "file").write_text("x")
     assert_refused(tmp_path / "file", capsys, "file: not a dataset folder")
     assert_refused(tmp_path / "none", capsys, "none: dataset folder not found")

@@ -251,7 +251,8 @@ def test_checkpoints_are_saved_atomically_in_the_run_folder(tmp_path):
         def __reduce__(self):
             raise OSError(28, "No space left on device")
 
-    with pytest.raises(OSError):
+    with pytest.raises(DegustaError, match=r"last.ckpt: cannot write the checkpoint \(No space left on device\); "
+                                           r"training stopped, the previous one is intact"):  # one line, not OSError
         io.save_checkpoint({"state_dict": {"w": torch.zeros(10_000)}, "global_step": 2, "x": Boom()}, target)
     assert target.read_bytes() == before  # the previous complete checkpoint is untouched
     assert sorted(p.name for p in target.parent.iterdir()) == ["last.ckpt"]  # no temp file left

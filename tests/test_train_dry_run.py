@@ -308,35 +308,36 @@ def test_impossible_device_counts_name_the_key(tmp_path, data):
     assert found.failures[0][1].startswith(f"trainer.devices: {cores * 32} CPU processes")
 
 
-def test_dry_run_fails_on_a_config_mistake_and_reports_a_missing_machine(tmp_path, data):
+def test_dry_run_fails_on_a_config_mistake_and_reports_a_missing_machine(tmp_path, data, capsys):
     """What the machine lacks is reported, the dry run goes on and exits 3 (it ran, a check FAILS); a config mistake
-    fails it with the real run's error (exit 2), so a dry-run is a check of the config."""
-    import subprocess
-    import sys
+    fails it with the real run's error (exit 2), so a dry-run is a check of the config. (In-process through
+    `cli.main`; tests/test_exit_codes.py runs the CLI as a real process.)"""
+    from degusta_learn.cli import main
 
     base = [f"dataset={data}", f"trainer.run_dir={tmp_path / 'runs'}", "model.d_model=16", "model.n_layers=1",
             "model.n_heads=2", "model.d_ff=32"]
 
     def dry(*extra):
-        cmd = [sys.executable, "-m", "degusta_learn.cli", "train", "--config", str(CONFIGS / "learned_cpu.yaml"),
-               "--dry-run"]
+        args = ["train", "--config", str(CONFIGS / "learned_cpu.yaml"), "--dry-run"]
         for o in base + list(extra):
-            cmd += ["--set", o]
-        return subprocess.run(cmd, capture_output=True, text=True)
+            args += ["--set", o]
+        code = main(args)
+        out, err = capsys.readouterr()
+        return code, out, err
 
     import torch
 
-    gpu = dry("trainer.accelerator=gpu")
-    assert gpu.returncode == (0 if torch.cuda.is_available() else 3), gpu.stdout + gpu.stderr
+    code, out, err = dry("trainer.accelerator=gpu")
+    assert code == (0 if torch.cuda.is_available() else 3), out + err
     if not torch.cuda.is_available():  # reported, the rest of the report is printed, one line on stderr says so
-        assert "FAILS on this machine: trainer.accelerator" in gpu.stdout and "predicted memory" in gpu.stdout
-        assert gpu.stderr.startswith("degusta: dry run: trainer check FAILS on this machine: trainer.accelerator")
-        assert gpu.stderr.count("\n") == 1 and "Traceback" not in gpu.stderr
+        assert "FAILS on this machine: trainer.accelerator" in out and "predicted memory" in out
+        assert err.startswith("degusta: dry run: trainer check FAILS on this machine: trainer.accelerator")
+        assert err.count("\n") == 1 and "Traceback" not in err
     for key, value in [("trainer.monitor", "val/no_such_key"), ("trainer.strategy", "no_such_strategy")]:
-        bad = dry(f"{key}={value}")
-        assert bad.returncode == 2, bad.stdout + bad.stderr
-        assert f"{key}: " in bad.stderr and "Traceback" not in bad.stderr
-        assert "FAILS on this machine" not in bad.stdout
+        code, out, err = dry(f"{key}={value}")
+        assert code == 2, out + err
+        assert f"{key}: " in err and "Traceback" not in err
+        assert "FAILS on this machine" not in out
     assert not (tmp_path / "runs").exists()
 
 

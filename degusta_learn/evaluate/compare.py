@@ -13,6 +13,9 @@ scored from stale predictions: a local method is recomputed (logged); a method t
 (openai, anthropic, gemini backends) is refused up front, before anything runs, with a message saying
 to delete the file (answers already in the response cache are reused, not paid again). Method names are
 safe file names (letters, digits, `.`, `_`, `-`), so nothing is written outside `out`.
+A zero-shot method's run leaves its ledger (paid requests) beside its file, as `NAME_kK.ledger.json` (never one
+ledger.json shared by every method), and what its ledgers say it cost (USD, requests, tokens) joins its entry in
+`metrics.json` (`cost_usd_total`, `requests`, `cost`) and the report's cost table.
 Every method must cover exactly the same episodes, and every record must agree with its episode
 (scoring.check_records): otherwise the whole comparison is refused, naming the file, line and field. A method whose run fails, or whose every
 prediction failed, is reported as failed; the rest of the report is written, and `compare` returns a
@@ -29,10 +32,12 @@ report as it was, and `predictions/` is carried over.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import itertools
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -44,7 +49,9 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import METHOD_NAME, EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import rank_methods, summarize
 from degusta_learn.prompting.backends.base import backend_class
-from degusta_learn.fileio import atomic_write_json, file_sha256, refuse_overwriting_inputs, stat_tree
+from degusta_learn.locks import hold
+from degusta_learn.textsafe import MESSAGE_LIMIT, one_line
+from degusta_learn.fileio import atomic_write_json, file_sha256, read_json, refuse_overwriting_inputs, stat_tree
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
 from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
 from degusta_learn.render.lifting import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
@@ -202,6 +209,62 @@ def fingerprint_path(predictions: Path) -> Path:
     return predictions.with_name(predictions.stem + ".fingerprint.json")
 
 
+def ledger_path(predictions: Path) -> Path:
+    """The ledger of the run that wrote `predictions` (NAME_kK.ledger.json beside NAME_kK.jsonl)."""
+    return predictions.with_name(predictions.stem + ".ledger.json")
+
+
+def _ledger_for(path: Path, out: Path) -> bool:
+    """Whether `path` is a ledger a zero-shot run wrote for the predictions file `out` (its `out` field)."""
+    from degusta_learn.prompting.runner import is_degusta_ledger
+
+    try:
+        return is_degusta_ledger(path) and Path(str(read_json(path).get("out"))).resolve() == out.resolve()
+    except (OSError, DegustaError, ValueError):
+        return False
+
+
+def claim_ledger(out: Path) -> None:
+    """Move the ledger.json a zero-shot run just wrote beside `out` to `ledger_path(out)`, the run's own: every
+    method of a comparison writes its predictions into one folder, and a ledger.json there would keep only the
+    last run's requests. Called however the run ended (done, failed, interrupted); a ledger.json written for
+    another file (or not by degusta) is left where it is."""
+    shared = out.parent / "ledger.json"
+    if _ledger_for(shared, out):
+        with contextlib.suppress(OSError):  # else left as ledger.json: the run's outcome matters more than the move
+            os.replace(shared, ledger_path(out))
+
+
+def method_cost(ledgers: list[Path], n_episodes: int) -> dict | None:
+    """What the ledgers of one method's runs say it cost (None: it kept none, e.g. a local method): USD spent by
+    the runs (`cost_usd`), USD of the cached answers they reused (paid by an earlier run: `cost_usd_reused`),
+    their sum (`cost_usd_total`, per episode too), requests, retries, failed requests and tokens."""
+    from degusta_learn.prompting.runner import is_degusta_ledger
+
+    found = []
+    for path in ledgers:
+        try:
+            if is_degusta_ledger(path):
+                found.append((path, read_json(path)))
+        except (OSError, DegustaError):  # gone or garbled since: that run's cost is unknown, the report stays
+            continue
+    if not found:
+        return None
+
+    def total(key, sub=None) -> float:
+        values = [(d.get(sub) or {}).get(key) if sub else d.get(key) for _, d in found]
+        return sum(v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0)
+
+    spent, reused = total("cost_usd"), total("cost_usd", "reused_from_cache")
+    tokens = total("input_tokens") + total("output_tokens")
+    tokens += total("input_tokens", "reused_from_cache") + total("output_tokens", "reused_from_cache")
+    return {"cost_usd": round(spent, 6), "cost_usd_reused": round(reused, 6), "cost_usd_total": round(spent + reused, 6),
+            "cost_usd_per_episode": round((spent + reused) / max(1, n_episodes), 6),
+            "tokens_per_episode": round(tokens / max(1, n_episodes), 1), "requests": int(total("requests")),
+            "retries": int(total("retries")), "failed_requests": int(total("failed_requests")),
+            "ledgers": [str(p) for p, _ in found]}
+
+
 # Keys that change how a run goes, not what it answers: a change never makes predictions stale.
 _RUN_CONTROL = {"out", "dataset", "episodes", "cache", "dry_run", "concurrency", "budget_usd", "max_retries",
                 "backoff", "backoff_max", "prices", "est_output_tokens", "timeout", "api_key_env"}
@@ -305,7 +368,10 @@ def _run_config(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, episodes: l
                                        "(cached answers are not paid again)")
                 log(f"[compare] {entry.name}: {out} is stale ({why}): recomputing")
             log(f"[compare] {entry.name}: predicting" + (f" (context {k})" if k is not None else ""))
-            run_predict(entry.config, overrides)
+            try:
+                run_predict(entry.config, overrides)
+            finally:  # this run's ledger (paid requests), however it ended, is its own file
+                claim_ledger(out)
             atomic_write_json(fingerprint_path(out), {"parts": parts, "predictions_sha256": file_sha256(out),
                                                       "method": entry.name, "context": k})
         paths.append(out)
@@ -342,6 +408,15 @@ def _collect(entry: MethodEntry, cfg: CompareConfig, ds: Dataset, episodes: list
     return sorted(preds, key=lambda p: p.episode)
 
 
+def _ledgers(entry: MethodEntry, cfg: CompareConfig, pred_dir: Path) -> list[Path]:
+    """The ledgers of a method: one per run of a config method; for a predictions file, the ledger.json beside it
+    when that ledger says it was written for this very file (its `out`)."""
+    if entry.config is not None:
+        return [ledger_path(path) for _, _, path in _runs(entry, cfg, pred_dir)]
+    beside = Path(entry.predictions).parent / "ledger.json"
+    return [beside] if _ledger_for(beside, Path(entry.predictions)) else []
+
+
 def _output_names(cfg: CompareConfig, pred_dir: Path) -> None:
     """Refuse two methods whose files under predictions/ would have the same name."""
     owner: dict[str, str] = {}
@@ -349,7 +424,7 @@ def _output_names(cfg: CompareConfig, pred_dir: Path) -> None:
         names = [f"{entry.name}.jsonl"]
         if entry.config is not None:
             for _, _, path in _runs(entry, cfg, pred_dir):
-                names += [path.name, fingerprint_path(path).name]
+                names += [path.name, fingerprint_path(path).name, ledger_path(path).name]
         for name in names:
             if owner.setdefault(name, entry.name) != entry.name:
                 raise DegustaError(f"methods: {owner[name]!r} and {entry.name!r} would both write "
@@ -389,7 +464,8 @@ def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, conf
     for entry in cfg.methods:
         written = [pred_dir / f"{entry.name}.jsonl"]
         if entry.config is not None:
-            written += [p for _, _, path in _runs(entry, cfg, pred_dir) for p in (path, fingerprint_path(path))]
+            written += [p for _, _, path in _runs(entry, cfg, pred_dir)
+                        for p in (path, fingerprint_path(path), ledger_path(path))]
         for path in written:
             mine = f"the predictions file of method {entry.name!r}"  # predictions/NAME.jsonl may be rewritten
             own = [i for i in inputs if not (path == written[0] and i[0] == mine)]  # from its own content
@@ -404,35 +480,42 @@ def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None
     from degusta_learn.evaluate.compare_report import write_compare_report
 
     out = check_target(cfg.out, COMPARISON)  # a bad `out` is refused before anything runs
-    ds = load_dataset(cfg.dataset)
-    episodes = comparison_episodes(cfg, ds)
-    ep_map = {e.id: e for e in episodes}
-    pred_dir = out / "predictions"
-    _output_names(cfg, pred_dir)
-    _refuse_replacing_inputs(cfg, out, pred_dir, config_path)
-    ds_id = dataset_identity(ds)
-    check_stale_paid(cfg, ds, episodes, pred_dir, ds_id)
-    predictions, failures = {}, {}
-    for entry in cfg.methods:
-        try:
-            predictions[entry.name] = _collect(entry, cfg, ds, episodes, ep_map, pred_dir, ds_id, log)
-        except (EpisodeSetMismatch, InconsistentRecords):
-            raise
-        except DegustaError as e:
-            log(f"[compare] {entry.name}: FAILED: {e}")
-            failures[entry.name] = str(e)
-    if not predictions:
-        reasons = "; ".join(f"{m}: {' '.join(msg.split())}" for m, msg in failures.items())
-        raise DegustaError(f"every method failed, so no report was written ({reasons})")
-    rows = [r for preds in predictions.values() for r in score_predictions(ds, preds, ep_map)]
-    summary = summarize(rows, cfg.n_bootstrap, cfg.seed)
-    methods = rank_methods(summary)  # best first; summarize already returns this order
-    paired = paired_table(rows, methods, cfg.n_bootstrap, cfg.seed)
-    curve = acceptability_curve(ds.ratings)
-    with write_folder(out, COMPARISON, keep=("predictions",)) as tmp:
-        for name, preds in predictions.items():
-            write_predictions(tmp / "predictions" / f"{name}.jsonl", preds)
-        write_compare_report(dataclasses.replace(cfg, out=str(tmp)), ds, episodes, rows, summary, paired, failures,
-                             predictions, curve, log)
-    log(f"[compare] report: {out / 'report.md'} (HTML: {out / 'report.html'})")
-    return Comparison(out, failures, len(cfg.methods))
+    with hold(out, COMPARISON.what):  # a second compare into the same folder is refused while this one runs
+        ds = load_dataset(cfg.dataset)
+        episodes = comparison_episodes(cfg, ds)
+        ep_map = {e.id: e for e in episodes}
+        pred_dir = out / "predictions"
+        _output_names(cfg, pred_dir)
+        _refuse_replacing_inputs(cfg, out, pred_dir, config_path)
+        ds_id = dataset_identity(ds)
+        check_stale_paid(cfg, ds, episodes, pred_dir, ds_id)
+        predictions, failures, costs = {}, {}, {}
+        for entry in cfg.methods:
+            try:
+                predictions[entry.name] = _collect(entry, cfg, ds, episodes, ep_map, pred_dir, ds_id, log)
+            except (EpisodeSetMismatch, InconsistentRecords):
+                raise
+            except DegustaError as e:
+                log(f"[compare] {entry.name}: FAILED: {one_line(str(e), MESSAGE_LIMIT)}")
+                failures[entry.name] = str(e)
+                continue
+            costs[entry.name] = method_cost(_ledgers(entry, cfg, pred_dir), len(predictions[entry.name]))
+        if not predictions:
+            reasons = "; ".join(f"{m}: {' '.join(msg.split())}" for m, msg in failures.items())
+            raise DegustaError(f"every method failed, so no report was written ({reasons})")
+        rows = [r for preds in predictions.values() for r in score_predictions(ds, preds, ep_map)]
+        summary = summarize(rows, cfg.n_bootstrap, cfg.seed)
+        for name, spent in costs.items():  # what each method's own ledgers say it cost (a paid method keeps one)
+            if spent is not None and name in summary:
+                summary[name].update({k: spent[k] for k in ("cost_usd_total", "cost_usd_per_episode", "tokens_per_episode",
+                                                            "requests")}, cost=spent)
+        methods = rank_methods(summary)  # best first; summarize already returns this order
+        paired = paired_table(rows, methods, cfg.n_bootstrap, cfg.seed)
+        curve = acceptability_curve(ds.ratings)
+        with write_folder(out, COMPARISON, keep=("predictions",)) as tmp:
+            for name, preds in predictions.items():
+                write_predictions(tmp / "predictions" / f"{name}.jsonl", preds)
+            write_compare_report(dataclasses.replace(cfg, out=str(tmp)), ds, episodes, rows, summary, paired, failures,
+                                 predictions, curve, log)
+        log(f"[compare] report: {out / 'report.md'} (HTML: {out / 'report.html'})")
+        return Comparison(out, failures, len(cfg.methods))

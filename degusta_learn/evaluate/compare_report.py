@@ -3,6 +3,11 @@
 Every table, plot and image lists the methods in rank order (summary.rank_methods: mean set RMSD, lower
 first, degenerate methods last) and marks degenerate methods (summary.label; grey hatched bars, dotted
 lines, "[degenerate]" in qualitative panel titles).
+
+Untrusted text (the config's title, the dataset's name, episode ids, the error messages of failed methods, which
+may quote a server's reply) enters report.md through degusta_learn.textsafe, and report.html is rendered by
+`textsafe.markdown_to_html` (raw HTML shown as text, only relative and http(s) links): docs/reliability.md,
+"Untrusted text".
 """
 
 from __future__ import annotations
@@ -10,21 +15,21 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import markdown
 import numpy as np
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
 from degusta_learn.evaluate.report import (
-    METRIC_NOTES, acceptability_lines, answer_table, context_table, few_object_warnings, method_table,
+    METRIC_NOTES, acceptability_lines, answer_table, context_table, few_object_warnings, md_label, method_table,
     write_per_episode_csv,
 )
-from degusta_learn.evaluate.summary import GRAMMAR_MARK, label, ranked
+from degusta_learn.evaluate.summary import GRAMMAR_MARK, ranked
 from degusta_learn.fileio import atomic_write_json, atomic_write_text
+from degusta_learn.textsafe import MESSAGE_LIMIT, html_text, markdown_to_html, md_code, md_text
 
 _HTML = """<!doctype html><html><head><meta charset="utf-8"><title>{title}</title><style>
 body{{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}}
-table{{border-collapse:collapse;margin:1em 0;font-size:14px}} td,th{{border:1px solid #ccc;padding:4px 8px}}
+table{{border-collapse:collapse;margin:1em 0;font-size:14px}} td,th{{border:1px solid #ccc;padding:4px 8px;overflow-wrap:anywhere}}
 th{{background:#f3f3f3}} img{{max-width:100%}} blockquote{{background:#fff6e0;margin:0;padding:.5em 1em}}
 code{{background:#f3f3f3}}</style></head><body>
 {body}
@@ -50,7 +55,7 @@ def _paired_lines(paired: list[dict], summary: dict[str, dict]) -> list[str]:
                 continue
             text = f"{r['diff']:+.3f} [{r['lo']:+.3f}, {r['hi']:+.3f}]"
             cells += [f"**{text}**" if r["lo"] > 0 or r["hi"] < 0 else text, f"{r['p_value']:.3f}"]
-        lines.append(f"| {label(e['a'], summary[e['a']])} | {label(e['b'], summary[e['b']])} | "
+        lines.append(f"| {md_label(e['a'], summary[e['a']])} | {md_label(e['b'], summary[e['b']])} | "
                      + " | ".join(cells) + " |")
     return lines
 
@@ -61,16 +66,18 @@ def _paper_table(summary: dict[str, dict], curve: dict[float, float]) -> list[st
     lines = ["| RMSD threshold | " + " | ".join(ts) + " |", "|---|" + "---:|" * len(ts),
              "| people: % of ratings with drop < 0.2 | " + " | ".join(f"{curve[float(t)]:.3f}" for t in ts) + " |"]
     for method, s in summary.items():
-        lines.append(f"| {label(method, s)}: % of predictions with RMSD <= t | "
+        lines.append(f"| {md_label(method, s)}: % of predictions with RMSD <= t | "
                      + " | ".join(f"{s['acceptable_at'].get(t, float('nan')):.3f}" for t in ts) + " |")
     return lines
 
 
 def _cost_lines(summary: dict[str, dict]) -> list[str]:
-    lines = ["| method | failure rate | tokens / episode | USD / episode | USD total |", "|---|---:|---:|---:|---:|"]
+    lines = ["| method | failure rate | tokens / episode | USD / episode | USD total | requests |",
+             "|---|---:|---:|---:|---:|---:|"]  # cost and requests: a paid method's ledgers (compare.method_cost)
     for method, s in summary.items():
-        lines.append(f"| {label(method, s)} | {s['failure_rate']:.3f} | {s.get('tokens_per_episode', '-')} | "
-                     f"{s.get('cost_usd_per_episode', '-')} | {s.get('cost_usd_total', '-')} |")
+        lines.append(f"| {md_label(method, s)} | {s['failure_rate']:.3f} | {s.get('tokens_per_episode', '-')} | "
+                     f"{s.get('cost_usd_per_episode', '-')} | {s.get('cost_usd_total', '-')} | "
+                     f"{s.get('requests', '-')} |")
     return lines
 
 
@@ -96,7 +103,8 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
     if ref_rows:
         best = min(ref_rows, key=lambda r: (r.set_rmsd, r.episode))
         worst = max(ref_rows, key=lambda r: (r.set_rmsd, r.episode))
-        chosen += [(f"best of {ref} (top-ranked)", best.episode), (f"worst of {ref} (top-ranked)", worst.episode)]
+        chosen += [(f"best of {md_text(ref)} (top-ranked)", best.episode),
+                   (f"worst of {md_text(ref)} (top-ranked)", worst.episode)]
     episodes = sorted({r.episode for r in rows})
     rng = np.random.default_rng(cfg.seed)
     if isinstance(cfg.qualitative, bool) or not isinstance(cfg.qualitative, int) or cfg.qualitative < 0:
@@ -117,7 +125,7 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
         first = next(p for p in predictions[ref] if p.episode == eid)
         name = f"qualitative/{n:02d}.png"
         render_side_by_side(ds, renderer, first.participant, first.target, panels, out / name)
-        lines += [f"**{why}**: episode `{eid}`", "", f"![{eid}]({name})", ""]
+        lines += [f"**{why}**: episode {md_code(eid)}", "", f"![episode {n + 1}]({name})", ""]
     return lines
 
 
@@ -133,13 +141,14 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
                                              "rating_acceptance": {f"{t:.2f}": v for t, v in curve.items()}})
     floor = _grid_floor(ds)
     plots = out / "plots"
-    lines = [f"# {cfg.title}", "",
-             f"Dataset: **{ds.label}**. Episodes: {len(episodes)} ({cfg.split} participants). "
+    lines = [f"# {md_text(cfg.title)}", "",
+             f"Dataset: **{md_text(ds.label)}**. Episodes: {len(episodes)} ({cfg.split} participants). "
              "Intervals are 95% bootstrap intervals over episodes.", ""]
     if ds.synthetic:
         lines += ["> SYNTHETIC data generated by degusta_learn: these are not the paper's human-study numbers.", ""]
     if failures:
-        lines += ["## Methods that failed", ""] + [f"- **{m}**: {msg}" for m, msg in failures.items()] + [""]
+        lines += ["## Methods that failed", ""] + [f"- **{md_text(m)}**: {md_text(msg, MESSAGE_LIMIT)}"
+                                                   for m, msg in failures.items()] + [""]
     if summary:
         log("[compare] plotting")
         plot_metric_bars(summary, plots / "metrics.png", floor)
@@ -173,5 +182,4 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
               "Per-episode scores: `per_episode.csv`; summary: `metrics.json`; predictions: `predictions/`.", ""]
     text = "\n".join(lines)
     atomic_write_text(out / "report.md", text)
-    body = markdown.markdown(text, extensions=["tables"])
-    atomic_write_text(out / "report.html", _HTML.format(title=cfg.title, body=body))
+    atomic_write_text(out / "report.html", _HTML.format(title=html_text(cfg.title), body=markdown_to_html(text)))

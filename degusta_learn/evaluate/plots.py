@@ -9,7 +9,8 @@
 Methods appear in rank order (bars left to right, legends top to bottom: summary.rank_methods). A
 degenerate method (most predictions match <= 2 objects) is drawn grey and hatched (bars) or dotted
 (lines), and its label carries summary.DEGENERATE_MARK; a method decoded inside the answer grammar carries
-summary.GRAMMAR_MARK.
+summary.GRAMMAR_MARK. Method names pass through textsafe.plot_text (one line, `$` escaped so that no
+label is parsed as mathtext, a leading `_` kept visible): any name draws.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np  # noqa: E402
 from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, ranked  # noqa: E402
 from degusta_learn.fileio import atomic_open  # noqa: E402
 from degusta_learn.scene import CONTEXT_LENGTHS  # noqa: E402
+from degusta_learn.textsafe import plot_text  # noqa: E402
 
 _METADATA = {"Software": None}  # no version strings in the PNG: same input, same bytes
 
@@ -55,7 +57,7 @@ def plot_metric_bars(summary: dict[str, dict], path: Path, rmsd_floor: float | N
     summary = ranked(summary)
     methods = list(summary)
     degenerate = [bool(summary[m].get("degenerate")) for m in methods]
-    ticks = [m + (GRAMMAR_MARK if summary[m].get("constrained") else "") + ("\n(degenerate)" if d else "")
+    ticks = [plot_text(m) + (GRAMMAR_MARK if summary[m].get("constrained") else "") + ("\n(degenerate)" if d else "")
              for m, d in zip(methods, degenerate)]
     fig, axes = plt.subplots(1, 3, figsize=(max(9, 1.5 * len(methods) + 4), 3.9))
     for ax, metric, title in ((axes[0], "set_rmsd", "set RMSD, ranks the methods (lower is better)"),
@@ -95,7 +97,7 @@ def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], 
         if len(v):
             mark = DEGENERATE_MARK if method in degenerate else ""
             ax.plot(grid, [(v <= g).sum() / len(v) for g in grid], **({"lw": 1.3} | _line_style(bool(mark))),
-                    label=f"{method}{mark}: RMSD <= t")
+                    label=f"{plot_text(method)}{mark}: RMSD <= t")
     ax.set_xlabel("RMSD threshold t (normalized image units)")
     ax.set_ylabel("fraction")
     ax.set_ylim(0, 1.02)
@@ -116,7 +118,7 @@ def plot_context(summary: dict[str, dict], path: Path, rmsd_floor: float | None 
         for ax, metric in ((axes[0], "set_rmsd"), (axes[1], "object_accuracy"), (axes[2], "rmsd")):
             ys = [(by[k].get(metric) or {}).get("mean") for k in ks]
             ax.plot([int(k) for k in ks], [np.nan if y is None else y for y in ys], marker="o",
-                    label=method + (GRAMMAR_MARK if s.get("constrained") else "")
+                    label=plot_text(method) + (GRAMMAR_MARK if s.get("constrained") else "")
                     + (DEGENERATE_MARK if s.get("degenerate") else ""),
                     **_line_style(bool(s.get("degenerate"))))
     axes[0].set_title("set RMSD vs context length", fontsize=10)

@@ -2,7 +2,8 @@
 
 One PNG per chosen episode (the paper's qualitative figure): the first panel is the held-out ground
 truth, then one panel per method, each the unmarked arrangement (UmA) on the target table, titled with
-the method and its Kabsch RMSD / object accuracy on that episode.
+the method and its Kabsch RMSD / object accuracy on that episode. Titles are drawn on one line
+(textsafe.one_line: control characters shown as escapes), shrunk and then cut with "…" to fit the panel.
 """
 
 from __future__ import annotations
@@ -16,9 +17,28 @@ from degusta_learn.fileio import atomic_write_bytes
 from degusta_learn.render.lifting import Renderer
 from degusta_learn.render.text import font
 from degusta_learn.scene import Dataset, Placement
+from degusta_learn.textsafe import one_line
 
 _TITLE_H = 54  # title, score line, and a line for objects drawn off the table
 _PER_ROW = 4  # panels per row: wide enough to compare, small enough to read
+
+
+def _fit(draw: ImageDraw.ImageDraw, text: str, width: int, size: int, smallest: int) -> tuple[str, int]:
+    """`text` on one line at the largest font size from `size` down to `smallest` that fits `width` pixels,
+    cut with "…" where even the smallest does not (a 1,000-character id must not run off the panel)."""
+    text = one_line(text, limit=400)
+    while size > smallest and draw.textlength(text, font=font(size)) > width:
+        size -= 1
+    if draw.textlength(text, font=font(size)) > width:
+        lo, hi = 0, len(text)  # the longest prefix that fits with the ellipsis
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if draw.textlength(text[:mid] + "…", font=font(size)) <= width:
+                lo = mid
+            else:
+                hi = mid - 1
+        text = text[:lo] + "…"
+    return text, size
 
 
 def _panel(renderer: Renderer, table_id: int, placements: list[Placement], title: str, subtitle: str) -> Image.Image:
@@ -28,11 +48,11 @@ def _panel(renderer: Renderer, table_id: int, placements: list[Placement], title
     canvas = Image.new("RGB", (img.width, img.height + _TITLE_H), "white")
     canvas.paste(img, (0, _TITLE_H))
     draw = ImageDraw.Draw(canvas)
-    size = 15  # a long method name ("tiny_base_finetuned + grammar") shrinks to fit instead of being cut off
-    while size > 9 and draw.textlength(title, font=font(size)) > canvas.width - 12:
-        size -= 1
+    # a long method name ("tiny_base_finetuned + grammar") shrinks to fit instead of being cut off
+    title, size = _fit(draw, title, canvas.width - 12, 15, 9)
+    subtitle, sub_size = _fit(draw, subtitle, canvas.width - 12, 12, 9)
     draw.text((6, 2), title, fill="black", font=font(size))
-    draw.text((6, 21), subtitle, fill=(80, 80, 80), font=font(12))
+    draw.text((6, 21), subtitle, fill=(80, 80, 80), font=font(sub_size))
     if off:  # its own line: appended to the score it ran past the panel's edge
         draw.text((6, 37), f"{off} object{'s' if off > 1 else ''} off the table", fill=(170, 60, 40), font=font(12))
     return canvas

@@ -15,6 +15,12 @@ Steps (each prints what it does; a re-run reuses what an interrupted run finishe
      through the `hf` backend (plus zero-shot GPT-4o MOGMA with --with-api) in one report.
 
 Every config it runs is written to `<out>/configs/` so that each step can be re-run or changed by hand.
+
+Whose folder: quickstart writes only into a folder it created or one it wrote before. Before anything else it
+checks `--out` (`fileio.user_path`) and the marker file `MARKER` (.degusta_quickstart.json) it leaves there: a new
+or empty folder is claimed (the marker is written first), a folder holding the marker is resumed, and any other
+non-empty folder (or a file) is refused with one line naming --out and the folder, nothing written, so files of
+the user's that happen to have the names quickstart writes (episodes.jsonl, configs/, report/ ...) are never replaced.
 """
 
 from __future__ import annotations
@@ -25,10 +31,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import yaml
 
-from degusta_learn.config import apply_overrides, read_yaml
-from degusta_learn.fileio import atomic_write_text
+from degusta_learn.config import apply_overrides, dump_yaml, read_yaml
+from degusta_learn.fileio import atomic_write_json, atomic_write_text, read_json, shown_path, user_path
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.scene import Episode, load_dataset, make_episodes, participants_in, write_episodes
 from degusta_learn.errors import DegustaError
@@ -39,13 +44,51 @@ if TYPE_CHECKING:
 
 BASELINES = ("random", "population_mean", "copy_nearest", "consensus", "oracle")
 
+MARKER = ".degusta_quickstart.json"
+"""The file quickstart writes first into its output folder: only a folder holding it (or a new or empty one) is
+written into."""
+MARKER_KIND = "degusta quickstart output folder"
+
+
+def claim_folder(out: str | Path) -> Path:
+    """The quickstart folder `out` (`~` expanded, checked), claimed: a new or empty folder gets the marker, a folder
+    with our marker is taken as it is; a file, or a non-empty folder without the marker, is one DegustaError naming
+    --out, and nothing is written."""
+    out = user_path(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise DegustaError(f"--out: {shown_path(out)}: exists and is not a folder; give a new or empty folder")
+    entries: list[str] = []
+    if out.is_dir():
+        try:
+            entries = sorted(p.name for p in out.iterdir())
+        except OSError as e:
+            raise DegustaError(f"--out: {shown_path(out)}: cannot read the folder ({e.strerror or e})") from None
+    if MARKER in entries:
+        try:
+            marker = read_json(out / MARKER)
+        except DegustaError as e:
+            raise DegustaError(f"--out: {e}; give a new or empty folder") from None
+        if not isinstance(marker, dict) or marker.get("kind") != MARKER_KIND:
+            raise DegustaError(f"--out: {shown_path(out / MARKER)}: not the marker degusta quickstart writes (kind "
+                               f"{MARKER_KIND!r}); give a new or empty folder")
+        return out
+    if entries:
+        shown = ", ".join(repr(n) for n in entries[:3]) + (f" and {len(entries) - 3} more" if len(entries) > 3 else "")
+        raise DegustaError(f"--out: {shown_path(out)}: refusing to write into a folder degusta quickstart did not "
+                           f"create (it holds {shown}, and no {MARKER}): quickstart could replace files of those "
+                           "names, so nothing was written; give a new or empty folder")
+    atomic_write_json(out / MARKER, {"kind": MARKER_KIND, "version": 1,
+                                     "note": "written by degusta quickstart, which writes only into a folder "
+                                             "holding this file; delete the folder to start again"})
+    return out
+
 
 def _config(name: str, out_dir: Path, overrides: list[str], command: str) -> Path:
     """Take the shipped config `name` (package data), apply `overrides`, write it to `out_dir` and return that path."""
     data = apply_overrides(read_yaml(shipped_config(name)), overrides)
     path = out_dir / f"{name}.yaml"
     atomic_write_text(path, f"# {command} --config {path}\n# written by degusta quickstart from configs/{name}.yaml\n"
-                      + yaml.safe_dump(data, sort_keys=False))
+                      + dump_yaml(data))
     return path
 
 
@@ -74,7 +117,7 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
     from degusta_learn.synth import generate_dataset
 
     t0 = time.time()
-    out = Path(out)
+    out = claim_folder(out)  # before anything is written: never into a folder of the user's
     cfg_dir, data_dir = out / "configs", out / "data" / "naturalistic"
 
     def step(msg: str) -> None:

@@ -4,11 +4,14 @@ The report names the dataset (and says SYNTHETIC where it is), states how each m
 one line, and warns that Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0):
 read it beside the set RMSD, the count error and the unregistered RMSD. Methods are listed best first
 by mean set RMSD (summary.rank_methods); a degenerate method is marked and listed after all others.
+
+Every untrusted string (the title, the dataset's name, method names, notes naming files) enters the Markdown
+through degusta_learn.textsafe (`md_text`, `md_label`), and per_episode.csv is written by `textsafe.write_csv`
+(no cell a spreadsheet would run as a formula): docs/reliability.md, "Untrusted text".
 """
 
 from __future__ import annotations
 
-import csv
 import math
 from pathlib import Path
 
@@ -16,6 +19,7 @@ from degusta_learn.evaluate.scoring import CSV_COLUMNS, EpisodeRow
 from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, RANKING_NOTE, label, ranked
 from degusta_learn.fileio import atomic_open, atomic_write_json, atomic_write_text
 from degusta_learn.metrics import SET_PENALTY
+from degusta_learn.textsafe import md_prose, md_text, write_csv
 
 PAPER_NOTE = "The paper's metrics: object accuracy, Kabsch RMSD and acceptability (acc@t), marked (paper)."
 
@@ -40,6 +44,11 @@ def fmt(stat: dict | None, digits: int = 3) -> str:
     return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
 
 
+def md_label(method: str, summary: dict) -> str:
+    """summary.label as Markdown: the (untrusted) method name escaped, its marks as they are."""
+    return md_text(method) + label(method, summary)[len(method):]
+
+
 def method_table(summary: dict[str, dict]) -> list[str]:
     """The main table, best first (see RANKING_NOTE), degenerate rows marked, with its notes above it."""
     lines = [RANKING_NOTE + " " + PAPER_NOTE, "",
@@ -48,7 +57,7 @@ def method_table(summary: dict[str, dict]) -> list[str]:
              "|---:|---|---:|---:|---|---|---|---:|---:|---:|---|---|"]
     for rank, (method, s) in enumerate(ranked(summary).items(), 1):
         acc = s["acceptable_at"]
-        lines.append(f"| {rank} | {label(method, s)} | {s['n_episodes']} | {s['failure_rate']:.3f} | "
+        lines.append(f"| {rank} | {md_label(method, s)} | {s['n_episodes']} | {s['failure_rate']:.3f} | "
                      f"{fmt(s.get('set_rmsd'))} | {fmt(s['object_accuracy'])} | {fmt(s['rmsd'])} | "
                      f"{acc['0.01']:.3f} | {acc['0.05']:.3f} | {acc['0.10']:.3f} | "
                      f"{fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} |")
@@ -78,7 +87,7 @@ def answer_table(summary: dict[str, dict]) -> list[str]:
         lo, hi = s.get("samples_per_episode") or (None, None)
         combined = "-" if hi is None else (f"{lo}" if lo == hi else f"{lo}-{hi}") + (
             f", {s['aggregation']}" if s.get("aggregation") else "")
-        lines.append(f"| {label(method, s)} | {decoding} | {combined} | {rate(s['parse_rate'])} | {rate(free)} | "
+        lines.append(f"| {md_label(method, s)} | {decoding} | {combined} | {rate(s['parse_rate'])} | {rate(free)} | "
                      f"{rate(s.get('forced_close_rate'))} |")
     return ["Answers: how many per episode and, for more than one, how they were combined (steps: the paper's "
             "per-step modes; votes: the most named objects; greedy_votes: one more, greedy answer lengthened by the "
@@ -96,7 +105,7 @@ def few_object_warnings(summary: dict[str, dict], threshold: float = 0.2) -> lis
     for method, s in summary.items():
         rate = s.get("few_objects_rate")
         if rate is not None and rate >= threshold:
-            lines.append(f"> Warning: {method} matches at most 2 objects in {rate:.0%} of its predictions, where "
+            lines.append(f"> Warning: {md_text(method)} matches at most 2 objects in {rate:.0%} of its predictions, where "
                          "Kabsch RMSD is ~0 by construction: judge it by set RMSD, count error and unregistered RMSD.")
     return [*lines, ""] if lines else []
 
@@ -114,7 +123,7 @@ def context_table(summary: dict[str, dict]) -> list[str]:
                              ("rmsd", "Kabsch RMSD (paper)")):
             cells = [f"{by[k][metric]['mean']:.3f}" if k in by and (by[k].get(metric) or {}).get("mean") is not None
                      else "-" for k in contexts]
-            lines.append(f"| {label(method, s)} | {name} | " + " | ".join(cells) + " |")
+            lines.append(f"| {md_label(method, s)} | {name} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -128,12 +137,10 @@ def acceptability_lines(curve: dict[float, float], from_ratings: bool) -> list[s
 
 
 def write_per_episode_csv(path: Path, rows: list[EpisodeRow]) -> None:
+    """One row per (method, episode); text cells neutralised for spreadsheets (textsafe.csv_cell), NaN empty."""
     with atomic_open(path, "w") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
-        writer.writeheader()
-        for r in rows:
-            writer.writerow({k: ("" if v is None or (isinstance(v, float) and math.isnan(v)) else v)
-                             for k, v in r.to_row().items()})
+        write_csv(f, CSV_COLUMNS, ({k: (None if isinstance(v, float) and math.isnan(v) else v)
+                                    for k, v in r.to_row().items()} for r in rows))
 
 
 def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, dict], rows: list[EpisodeRow],
@@ -144,8 +151,9 @@ def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, d
     atomic_write_json(out / "metrics.json", summary)
     write_per_episode_csv(out / "per_episode.csv", rows)
     n_eps = len({r.episode for r in rows})
-    lines = [f"# {title}", "", f"Dataset: **{dataset_label}**. Episodes: {n_eps}. "
-             f"Methods: {', '.join(summary)}. Intervals are 95% bootstrap intervals over episodes.", ""]
+    lines = [f"# {md_text(title)}", "", f"Dataset: **{md_text(dataset_label)}**. Episodes: {n_eps}. "
+             f"Methods: {', '.join(md_text(m) for m in summary)}. Intervals are 95% bootstrap intervals over "
+             "episodes.", ""]
     if "SYNTHETIC" in dataset_label:
         lines += ["> These numbers are on SYNTHETIC data generated by degusta_learn, not on the paper's human data.", ""]
     lines += ["## Results", "", *method_table(summary), "", *few_object_warnings(summary)]
@@ -157,7 +165,7 @@ def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, d
         lines += ["## By context length", "", *ctx, ""]
     lines += ["## Acceptability", "", *acceptability_lines(curve, from_ratings), ""]
     for note in notes or []:
-        lines += [f"> {note}", ""]
+        lines += [f"> {md_prose(note)}", ""]  # notes name files and methods: escaped, `code` kept
     lines += ["## How to read this", "", METRIC_NOTES, "",
               "Per-episode scores: `per_episode.csv`; machine-readable summary: `metrics.json`.", ""]
     atomic_write_text(out / "report.md", "\n".join(lines))

@@ -133,6 +133,7 @@ def ranked(summary: dict[str, dict]) -> dict[str, dict]:
 
 def label(method: str, summary: dict) -> str:
     """The method's name as tables and plots show it: with GRAMMAR_MARK when it decoded inside the answer
-    grammar, and DEGENERATE_MARK when it is degenerate."""
+    grammar, and DEGENERATE_MARK when it is degenerate. Plain text: Markdown tables use report.md_label (the name
+    escaped by textsafe.md_text), plots textsafe.plot_text."""
     name = method + GRAMMAR_MARK if summary.get("constrained") else method
     return name + DEGENERATE_MARK if summary.get("degenerate") else name

@@ -126,10 +126,12 @@ def export_sft(config: str | Path | None, out: str | Path, split: str = "train",
 
 def dataset_card(cfg, split: str, n: int, n_images: int) -> str:
     """README.md of an export: what it is and how TRL, LLaMA-Factory and `datasets` load it."""
+    from degusta_learn.textsafe import md_code
+
     return f"""# DegustaBot lifted-image SFT data ({split})
 
 {n} examples, {n_images} images, exported by `degusta data export-sft` from the fine-tuning config of
-method `{cfg.method}` on `{cfg.dataset}` (participant split seed {cfg.seed}; `degusta_export.json` lists the
+method `{cfg.method}` on {md_code(cfg.dataset)} (participant split seed {cfg.seed}; `degusta_export.json` lists the
 participants). Each example is exactly what `degusta train` trains on in its first epoch: the same prompt
 text and lifted images (rendered at {cfg.data.render_size} px; prompt options include={list(cfg.data.include)},
 compose={list(cfg.data.compose)}) and the same target answer. The data is SYNTHETIC if the dataset is.

@@ -27,6 +27,8 @@ from degusta_learn.config import bounded, check_choices
 from degusta_learn.errors import DegustaError
 
 MODES = ("lora", "full", "qlora")
+MAX_TARGETS = 1000
+"""Most module names in `lora.targets` / `lora.vision_targets` (each is matched against every Linear module)."""
 _LANGUAGE = ("model.text_model", "model.language_model", "language_model", "model.model")
 _VISION = ("model.vision_model", "model.visual", "model.vision_tower", "vision_tower")
 _CONNECTOR = ("model.connector", "model.visual.merger", "model.multi_modal_projector", "multi_modal_projector")
@@ -62,6 +64,14 @@ class LoraConfig:
             raise DegustaError(f"lora.r: expected >= 1, got {self.r}")
         if not 0 <= self.dropout < 1:
             raise DegustaError(f"lora.dropout: expected in [0, 1), got {self.dropout}")
+        for key in ("targets", "vision_targets"):
+            names = getattr(self, key)
+            if len(names) > MAX_TARGETS:
+                raise DegustaError(f"lora.{key}: {len(names):,} module names (at most {MAX_TARGETS:,}: names match "
+                                   "every layer, e.g. q_proj)")
+            bad = next((n for n in names if not isinstance(n, str) or not n or len(n) > 200), None)
+            if bad is not None:
+                raise DegustaError(f"lora.{key}: expected module names of 1 to 200 characters, got {bad!r}"[:200])
 
 
 def _part(model, candidates: tuple[str, ...], exclude: str | None = None) -> str | None:

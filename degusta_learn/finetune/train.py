@@ -151,10 +151,13 @@ def run(cfg: FinetuneConfig) -> Path:
         save_last(module, run_dir)  # adapter/ (LoRA) or model/ (full): the last weights
         if module.lora and cfg.lora.merge:
             from degusta_learn.finetune.card import write_finetune_files
+            from degusta_learn.finetune.export import MODEL_FOLDER
+            from degusta_learn.outdir import write_folder
 
-            merged = lora.merge_and_save(model, processor, run_dir / "merged")
-            write_meta(merged, cfg, processor, chosen_on_val=False)
-            write_finetune_files(merged, cfg, adapter=False, metrics=validation_scores(module, None))
+            with write_folder(run_dir / "merged", MODEL_FOLDER) as merged:  # whole or not at all, as every export
+                lora.merge_and_save(model, processor, merged)
+                write_meta(merged, cfg, processor, chosen_on_val=False)
+                write_finetune_files(merged, cfg, adapter=False, metrics=validation_scores(module, None))
         write_meta(run_dir, cfg, processor)
         sync_best(module, run_dir)  # best_adapter/ or best_model/ = best.ckpt (loads it: keep this last)
         return run_dir

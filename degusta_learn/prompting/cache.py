@@ -176,6 +176,8 @@ class ResponseCache:
             return {}
         marks = ",".join("?" * len(keys))
         with self._lock:
+            if self._db is None:  # closed meanwhile (a run interrupted while a worker was still answering)
+                return {}
             rows = self._db.execute(f"SELECT key, text, input_tokens, output_tokens FROM responses "
                                     f"WHERE key IN ({marks})", keys).fetchall()
         return {k: Completion(text=t if isinstance(t, str) else str(t), input_tokens=_int(i), output_tokens=_int(o))
@@ -191,6 +193,8 @@ class ResponseCache:
         now = time.time()
         rows = [(key, episode, redact(_text(c.text)), _int(c.input_tokens), _int(c.output_tokens), now) for key, c in items]
         with self._lock:
+            if self._db is None:  # closed by an interrupted run: a request still in flight then is not kept
+                return
             try:
                 self._db.execute("BEGIN IMMEDIATE")
                 self._db.executemany("INSERT OR REPLACE INTO responses VALUES (?, ?, ?, ?, ?, ?)", rows)
@@ -207,10 +211,10 @@ class ResponseCache:
             return self._db.execute("SELECT count(*) FROM responses").fetchone()[0]
 
     def close(self) -> None:
-        if self._db is not None:
-            with self._lock:
+        with self._lock:
+            if self._db is not None:
                 self._db.close()
-            self._db = None
+                self._db = None
 
 
 def _text(v) -> str:

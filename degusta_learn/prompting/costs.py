@@ -95,7 +95,7 @@ class Ledger:
         self._reserved = 0.0
         self.stats: dict[str, Any] = {"requests": 0, "failed_requests": 0, "retries": 0, "samples_received": 0,
                                       "samples_cached": 0, "input_tokens": 0, "output_tokens": 0,
-                                      "cost_usd": 0.0, "usage_missing": 0}
+                                      "cost_usd": 0.0, "usage_missing": 0, "empty_answers": 0}
 
     def reserve(self, estimate_usd: float) -> None:
         """Book the estimate of a request about to start; BudgetExceeded if it would pass the budget."""

@@ -7,13 +7,19 @@ Usage:
     degusta predict --config configs/zeroshot_mogma_local.yaml --set backend.base_url=http://127.0.0.1:8000/v1
 
 For each episode the runner builds the method's prompt (main thread), looks every sample up in the
-SQLite response cache, asks the backend for the missing ones on a bounded thread pool (retrying rate
-limits, 408/409/5xx, timeouts, dropped connections and 200s whose body is not a completion, with bounded
-exponential backoff + jitter, honouring Retry-After), commits each response's answers to the cache the
-moment it is received (before parsing anything), parses and aggregates the n answers (a bad item is
+SQLite response cache, asks the backend for the missing ones on a bounded pool of daemon threads (retrying
+rate limits, 408/409/5xx, timeouts -- a request has one deadline, backends/transport.py --, dropped
+connections, replies refused for their size, 200s whose body is not a completion and, from a server, 200s
+without an answer, with bounded exponential backoff + jitter, honouring Retry-After), commits each
+response's answers to the cache the moment it is received (before parsing anything; an answer longer than
+the parser reads is kept cut, with a note of its length), parses and aggregates the n answers (a bad item is
 dropped and counted in `diagnostics.item_errors`; an answer with no valid item is a failed sample; model
-text never raises), and finally writes predictions.jsonl (through `methods.run_predict`) and
-`ledger.json` (tokens and dollars) beside it.
+text never raises), and finally writes predictions.jsonl (through `methods.run_predict`; every line fits
+what `read_predictions` reads, `fit_line`) and `ledger.json` (tokens and dollars) beside it.
+
+Ctrl-C or SIGTERM (`errors.Terminated`) stops the run at once: the requests in flight get
+`INTERRUPT_GRACE_S` to land, a stalled one is left to its daemon thread, and the ledger of every request
+already paid is written (the answers are in the cache already).
 
 A run that could not get every answer writes NO predictions file and exits with a one-line
 `DegustaError`: a `budget_usd` cap, a fatal API error (bad key), a server that kept failing (retries
@@ -27,21 +33,25 @@ from __future__ import annotations
 
 import json
 import math
+import queue
 import random
+import re
 import threading
 import time
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from tqdm import tqdm
 
-from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json, read_json, refuse_overwriting_inputs
+from degusta_learn.errors import DegustaError, Terminated
+from degusta_learn.fileio import MAX_LINE_BYTES, atomic_write_json, read_json, refuse_overwriting_inputs
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.render.grid import Grid
 from degusta_learn.prompting.aggregate import ANCHORED, Aggregation, combine, decoding_diagnostics
-from degusta_learn.prompting.answers import AnswerParseError, answer_kind, answer_schema, is_repeat, read_answer
+from degusta_learn.prompting.answers import (
+    MAX_CHARS, AnswerParseError, answer_kind, answer_schema, is_repeat, read_answer,
+)
 from degusta_learn.prompting.backends.base import (
     BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact, redact_json,
 )
@@ -141,9 +151,34 @@ class _Unanswered(Exception):
     """An episode some of whose answers the server did not give (retries exhausted); asked again on re-run."""
 
 
+_CUT = "\n[degusta: answer cut here; {n} characters in all, the first {keep} kept]"
+_CUT_PATTERN = re.compile(r"\n\[degusta: answer cut here; (\d+) characters in all, the first (\d+) kept\]\Z")
+LINE_BUDGET = MAX_LINE_BYTES // 2
+"""The most bytes one prediction's JSON line may take (half what `read_predictions` reads, fileio.MAX_LINE_BYTES):
+past it the stored answers are cut further and the item errors listed are capped (`diagnostics.line_cut`)."""
+
+
+def cut_answer(text: str, keep: int = MAX_CHARS) -> str:
+    """`text` if it has at most `keep` characters, else its first `keep` and a note of its full length (the note
+    of an answer cut before keeps the length it had when received)."""
+    if len(text) <= keep:
+        return text
+    n = answer_length(text)
+    m = _CUT_PATTERN.search(text)
+    return (text[:m.start()] if m else text)[:keep] + _CUT.format(n=n, keep=keep)
+
+
+def answer_length(text: str) -> int:
+    """The length of an answer as received (its cut note says, if it was cut)."""
+    m = _CUT_PATTERN.search(text) if len(text) > 80 else None
+    return int(m.group(1)) if m else len(text)
+
+
 def _sanitize(got) -> list[Completion]:
     """A backend's return value as a list of Completions with text and sane token counts (a bad reply
-    from a server or a buggy backend becomes text that fails to parse, never an exception later)."""
+    from a server or a buggy backend becomes text that fails to parse, never an exception later). An answer of
+    more than answers.MAX_CHARS characters (more than the parser reads) is cut to its first MAX_CHARS with a note
+    of its length (`cut_answer`) here, before the cache, the predictions or anything else holds it."""
     from degusta_learn.prompting.cache import _int, _text
 
     if not isinstance(got, (list, tuple)):
@@ -151,10 +186,89 @@ def _sanitize(got) -> list[Completion]:
     out = []
     for c in got:
         decoding = getattr(c, "decoding", None)  # what a local model's decoding did (vlm.generate)
-        out.append(Completion(text=_text(getattr(c, "text", None)), input_tokens=_int(getattr(c, "input_tokens", None)),
+        text = getattr(c, "text", None)
+        if isinstance(text, str) and len(text) > MAX_CHARS:
+            text = cut_answer(text)
+        out.append(Completion(text=_text(text), input_tokens=_int(getattr(c, "input_tokens", None)),
                               output_tokens=_int(getattr(c, "output_tokens", None)),
                               decoding=decoding if isinstance(decoding, dict) else None))
     return out
+
+
+def fit_line(pred: Prediction, budget: int = LINE_BUDGET) -> Prediction:
+    """`pred` with diagnostics small enough that its JSON line takes at most `budget` bytes, so the predictions
+    file is always one `read_predictions` reads (many samples of long answers, escaped to 6-12 bytes a character,
+    could pass fileio.MAX_LINE_BYTES): first the item errors listed are capped at 100 (their count stays), then
+    every stored answer is cut shorter (`cut_answer`), a quarter each round; `diagnostics.line_cut` says what was
+    cut. Scores never change: the answers were parsed before."""
+    size = len(json.dumps(pred.to_json()))
+    if size <= budget:
+        return pred
+    d = pred.diagnostics
+    note: dict = {"bytes_before": size}
+    if len(d.get("item_errors") or []) > 100:
+        d["item_errors"], note["item_errors_kept"] = d["item_errors"][:100], 100
+    keep = MAX_CHARS
+    while len(json.dumps(pred.to_json())) > budget and keep > 100:
+        keep //= 4
+        d["responses"] = [cut_answer(t, keep) if isinstance(t, str) else t for t in d.get("responses") or []]
+        if isinstance(d.get("greedy_response"), str):
+            d["greedy_response"] = cut_answer(d["greedy_response"], keep)
+        note["responses_cut_to_chars"] = keep
+    d["line_cut"] = note
+    return pred
+
+
+INTERRUPT_GRACE_S = 1.0
+"""How long an interrupted run waits for the requests in flight (an answer arriving then is still cached and in the
+ledger) before it writes the ledger and lets go: never longer, however stalled a server is."""
+
+
+class _Workers:
+    """The request threads of a run: daemons, so an interrupt (Ctrl-C, SIGTERM) never waits on a request that
+    is stalled at a server (each ends by itself at its deadline, or with the process). `submit` returns a
+    `concurrent.futures.Future`; `shutdown` cancels what has not started, then joins the threads, for at most
+    `grace` seconds if given."""
+
+    def __init__(self, n: int, name: str):
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._threads = [threading.Thread(target=self._work, name=f"{name}_{i}", daemon=True) for i in range(n)]
+        self._queued: list[Future] = []
+        for t in self._threads:
+            t.start()
+
+    def submit(self, fn, *args) -> Future:
+        fut: Future = Future()
+        self._queued = [f for f in self._queued if not f.done() and not f.running()] + [fut]
+        self._jobs.put((fut, fn, args))
+        return fut
+
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            fut, fn, args = job
+            if not fut.set_running_or_notify_cancel():  # cancelled while queued
+                continue
+            try:
+                result = fn(*args)
+            except BaseException as e:  # handed to the main thread, which raises or records it
+                fut.set_exception(e)
+            else:
+                fut.set_result(result)
+
+    def shutdown(self, grace: float | None = None) -> None:
+        for fut in self._queued:
+            fut.cancel()  # not started: never will
+        for _ in self._threads:
+            self._jobs.put(None)
+        end = None if grace is None else time.monotonic() + grace
+        try:
+            for t in self._threads:
+                t.join(None if end is None else max(0.0, end - time.monotonic()))
+        except KeyboardInterrupt:  # a second Ctrl-C while waiting: stop waiting, the caller still keeps its books
+            pass
 
 
 class ZeroShotRun:
@@ -238,6 +352,7 @@ class ZeroShotRun:
                     raise
                 except Exception as e:  # a client library's own exception, a local model's OOM: stop cleanly
                     raise BackendError(f"{c.backend.name}: {type(e).__name__}: {str(e)[:300]}", fatal=True) from None
+                got = self.received(got, keys, episode, est_in)
             except BackendError as e:
                 self.ledger.release(est_usd)
                 if e.fatal or not e.retryable or attempt == c.max_retries:
@@ -253,15 +368,33 @@ class ZeroShotRun:
             except BaseException:
                 self.ledger.release(est_usd)
                 raise
-            if self.cache is not None and keys is not None:
-                self.cache.put_many(list(zip(keys, got)), episode)  # committed before anything else
             self.ledger.release(est_usd)
-            ins = [x.input_tokens for x in got]
-            outs = [x.output_tokens for x in got]
-            self.ledger.record(None if None in ins else sum(ins), None if None in outs else sum(outs), len(got),
-                               fallback=(est_in, self.est_out * len(got)))
             return got
         raise AssertionError("unreachable")
+
+    def received(self, got: list[Completion], keys: list[str] | None, episode: str | None,
+                 est_in: int) -> list[Completion]:
+        """Keep a reply: its answers committed to the cache first, then the request in the ledger (paid, whatever
+        it holds). A reply without an answer from a backend whose empty answers are the server's (`empty_is_fault`:
+        no choices, a null message, empty or blank text) raises a retryable BackendError, retried as any server
+        fault; the empty answers of a reply that also holds others are dropped (the runner asks again for them)."""
+        fault = self.backend_cls.empty_is_fault
+        answered = [c for c in got if c.text.strip()] if fault else got
+        if self.cache is not None and keys is not None:
+            self.cache.put_many(list(zip(keys, answered)), episode)  # committed before anything else
+        ins = [x.input_tokens for x in got]
+        outs = [x.output_tokens for x in got]
+        unknown = fault and not got  # a server's reply without choices (nor usage): the input it was sent is billed
+        self.ledger.record(None if unknown or None in ins else sum(ins), None if unknown or None in outs else sum(outs),
+                           len(answered), fallback=(est_in, self.est_out * len(got)))
+        if fault and (len(answered) < len(got) or not got):
+            self.ledger.count("empty_answers", len(got) - len(answered) if got else 1)
+        if fault and not answered:
+            what = "no choices" if not got else "an empty answer"
+            raise BackendError(f"{self.cfg.backend.name}: {self.cfg.backend.model} answered 200 with {what} (no "
+                               "choices / content / candidates, a null message or blank text): a server fault",
+                               retryable=True)
+        return answered
 
     def episode(self, ep: Episode, prompt: Prompt, keys: list[str], hits: dict[str, Completion]) -> Prediction:
         """Fetch the missing samples of one episode, then parse and aggregate all n (worker thread).
@@ -321,6 +454,11 @@ class ZeroShotRun:
             if s is None:
                 parsed.append(None)
                 continue
+            if len(s.text) > MAX_CHARS:  # cut when received (or cached whole by an older version): not read
+                reasons[i] = (f"unparseable answer: {answer_length(s.text)} characters long (at most {MAX_CHARS} "
+                              "are read; the first are kept in the responses)")
+                parsed.append(None)
+                continue
             try:
                 answer = read_answer(s.text, self.kind, self.ds.catalog, self.grid)
             except AnswerParseError as e:
@@ -336,17 +474,19 @@ class ZeroShotRun:
                   if self.cfg.aggregation == "greedy_votes_context" else None)  # the person's own counts
         placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.aggregation, anchor=anchor,
                                   context_counts=counts)
+        kept = [cut_answer(s.text) if s else None for s in samples]  # bounded, whatever a cache holds
         diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": n,
-                "cached": cached, "responses": [s.text if s else None for s in samples[:n]],
-                **({"greedy_response": samples[n].text if samples[n] else None} if len(samples) > n else {}),
+                "cached": cached, "responses": kept[:n],
+                **({"greedy_response": kept[n]} if len(samples) > n else {}),
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
                 "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors,
                 "n_item_repeats": sum(is_repeat(e["reason"]) for e in item_errors), **agg}
         decoding = decoding_diagnostics(samples, self.kind, self.ds.catalog, self.grid)  # local models only
         if decoding:
             diag["decoding"] = {"max_new_tokens": self.cfg.backend.max_tokens, **decoding}
-        return Prediction(episode=ep.id, participant=ep.participant, target=ep.target, method=self.cfg.method,
-                          placements=placements, failed=agg["failed"], diagnostics=redact_json(diag))
+        return fit_line(Prediction(episode=ep.id, participant=ep.participant, target=ep.target,
+                                   method=self.cfg.method, placements=placements, failed=agg["failed"],
+                                   diagnostics=redact_json(diag)))
 
     # ------------------------------------------------------------------------- the run
 
@@ -368,8 +508,9 @@ class ZeroShotRun:
         start = time.time()
         todo = iter(episodes)
         bar = tqdm(total=len(episodes), desc=f"{c.method} {c.backend.model}", unit="ep", disable=None)
-        pool = ThreadPoolExecutor(max_workers=c.concurrency, thread_name_prefix="degusta-zeroshot")
+        pool = _Workers(c.concurrency, "degusta-zeroshot")
         pending: dict = {}
+        interrupted = False
 
         def submit_next() -> bool:
             ep = next(todo, None)
@@ -388,7 +529,8 @@ class ZeroShotRun:
             while len(pending) < 2 * c.concurrency and submit_next():
                 pass
             while pending:
-                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+                # polled: a signal is handled at once on every platform, whatever the workers are waiting on
+                done, _ = wait(list(pending), timeout=0.5, return_when=FIRST_COMPLETED)
                 for fut in done:
                     ep = pending.pop(fut)
                     try:
@@ -414,16 +556,20 @@ class ZeroShotRun:
                 bar.set_postfix_str(f"${self.ledger.summary()['cost_usd']:.4f}")
                 while not self.stop.is_set() and len(pending) < 2 * c.concurrency and submit_next():
                     pass
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (errors.Terminated): keep what was paid, wait for nothing
             self.stop.set()
-            stopped = "interrupted"
+            interrupted = True
+            stopped = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
             raise
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            # interrupted: requests in flight get INTERRUPT_GRACE_S to land, then are left to their daemon threads
+            pool.shutdown(INTERRUPT_GRACE_S if interrupted else None)
             bar.close()
-            self.write_ledger(episodes, results, unanswered, stopped, time.time() - start, reused)
-            if self.cache is not None:
-                self.cache.close()
+            try:
+                self.write_ledger(episodes, results, unanswered, stopped, time.time() - start, reused)
+            finally:
+                if self.cache is not None:
+                    self.cache.close()  # every answer received is already committed; this only lets go of the file
         if stopped or unanswered:
             raise DegustaError(redact(self.incomplete_message(episodes, results, unanswered, stopped)))
         return [results[ep.id] for ep in episodes]
@@ -447,6 +593,7 @@ class ZeroShotRun:
 
     @property
     def ledger_path(self) -> Path:
+        """ledger.json beside `out` (it names `out`: `degusta compare` claims each method's as its own file)."""
         return self.out.parent / "ledger.json"
 
     def write_ledger(self, episodes, results, unanswered, stopped, wall_s, reused) -> None:
@@ -454,7 +601,8 @@ class ZeroShotRun:
         summary = self.ledger.summary()
         diags = [p.diagnostics for p in results.values()]
         atomic_write_json(self.ledger_path, redact_json({
-            "kind": LEDGER_MARK, "method": c.method, "backend": c.backend.name, "model": c.backend.model,
+            "kind": LEDGER_MARK, "method": c.method, "out": str(self.out), "backend": c.backend.name,
+            "model": c.backend.model,
             "base_url": getattr(c.backend, "base_url", None),  # null: a backend that calls no server (hf, replay)
             "structured_output": c.backend.structured_output,
             "n": c.n, "aggregation": c.aggregation, "episodes": len(episodes), "episodes_done": len(results),
@@ -477,7 +625,10 @@ def run_zeroshot(cfg: ZeroShotConfig, ds: Dataset, episodes: list[Episode]) -> l
         backend_class(cfg.backend.name).check_run(cfg.backend, ds, episodes, cfg.image_size)
         print_estimate(cfg, estimate_run(run, episodes))
         return None
-    return run.run(episodes)
+    from degusta_learn.locks import hold
+
+    with hold(run.ledger_path, "zero-shot ledger"):  # a second run writing the same ledger and predictions: refused
+        return run.run(episodes)
 
 
 _DESCRIPTION = "zero-shot VLM prompting (DegustaBot {}: {} objects, {} arrangements)"

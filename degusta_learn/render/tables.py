@@ -81,6 +81,18 @@ def _texture(kind: str, base, w: int, h: int, rng: np.random.Generator) -> np.nd
     return np.clip(base * shade[..., None], 0, 1)
 
 
+def _min_filter(a: np.ndarray, k: int) -> np.ndarray:
+    """The minimum over each pixel's k x k square (edges replicated): Pillow's `MinFilter(k)`, byte for byte.
+
+    Pillow's rank filter costs k^2 per pixel, and k grows with the image (the rim band is w / 110 px), so a table
+    cost size^4: 0.7 s at 896 px, minutes at 4096. The square minimum is separable; scipy's 1-D passes cost
+    O(1) per pixel whatever k (benchmarks/RESULTS.md, "Render cost by image size").
+    """
+    from scipy.ndimage import minimum_filter
+
+    return minimum_filter(a, size=k, mode="nearest")
+
+
 def surface_mask(table: Table, w: int, h: int) -> Image.Image:
     """The antialiased surface polygon as an "L" image (255 inside)."""
     ss = 4
@@ -114,7 +126,7 @@ def _table_image(table: Table, w: int, h: int, root: str | None) -> Image.Image:
     shadow = np.roll(shadow, (off, off), axis=(0, 1))
     floor = floor * (1 - 0.45 * shadow)
     edge_w = max(2, w // 110)
-    inner = np.asarray(mask_img.filter(ImageFilter.MinFilter(2 * edge_w + 1)), np.float32)[..., None] / 255
+    inner = _min_filter(np.asarray(mask_img), 2 * edge_w + 1).astype(np.float32)[..., None] / 255
     surface = _texture(kind, base, w, h, rng)
     surface = surface * (0.72 + 0.28 * inner)  # darker rim band: the table's edge
     out = floor * (1 - mask) + surface * mask

@@ -3,7 +3,9 @@
 The font is DejaVu Sans Bold shipped inside matplotlib (a declared dependency), so labels look the same
 on every machine with the same Pillow/FreeType; without it Pillow's embedded default font is used.
 Labels get a halo (a stroke in a contrasting colour) or a rounded box so they stay readable on any
-background.
+background. Every function draws its text on one line (textsafe.one_line: whitespace runs as one space,
+control characters as visible escapes): a word with a newline or a NUL draws instead of raising (Pillow's
+anchored text refuses multi-line strings).
 
 Example:
     from PIL import Image, ImageDraw
@@ -18,6 +20,8 @@ import importlib.util
 from pathlib import Path
 
 from PIL import ImageDraw, ImageFont
+
+from degusta_learn.textsafe import one_line
 
 
 def _font_path() -> Path | None:
@@ -40,7 +44,7 @@ def font(size: int) -> ImageFont.FreeTypeFont:
 
 def text_size(text: str, size: int) -> tuple[int, int]:
     """(width, height) in pixels of `text` drawn at font `size` (ink box)."""
-    x0, y0, x1, y1 = font(size).getbbox(text)
+    x0, y0, x1, y1 = font(size).getbbox(one_line(text, limit=None))
     return x1 - x0, y1 - y0
 
 
@@ -48,7 +52,7 @@ def draw_centered(draw: ImageDraw.ImageDraw, center: tuple[float, float], text: 
                   fill=(0, 0, 0), halo=None, halo_width: int = 0) -> None:
     """Draw `text` centred on `center` (ink-box centred), optionally with a halo stroke."""
     f = font(size)
-    draw.text(center, text, font=f, fill=fill, anchor="mm",
+    draw.text(center, one_line(text, limit=None), font=f, fill=fill, anchor="mm",
               stroke_width=halo_width if halo is not None else 0, stroke_fill=halo)
 
 

@@ -13,9 +13,11 @@ A dataset is a folder::
 `validate_dataset` applies the same rules to a dataset in memory (the generators check their output
 with it). The rules, in one place: JSON types; ids 0..MAX_ID, trials 0..MAX_TRIAL, coordinates in
 [0, 1], finite numbers (the readers refuse NaN/inf and oversized numbers); classes, colours and
-materials from the vocabulary; table surfaces that are real polygons (>= 3 distinct points, area
->= MIN_SURFACE_AREA); pictures and named files that stay inside the dataset folder (no '..', no
-absolute paths, no symbolic links out) and, for PNG, at most MAX_IMAGE_PIXELS pixels. An optional file
+materials from the vocabulary; printable text (no control or invisible characters in any name, word, id
+or path: validate.printable_text; a meta.json `description` may hold newlines and tabs); table
+surfaces that are real polygons (>= 3 distinct points, area >= MIN_SURFACE_AREA); pictures and named
+files that stay inside the dataset folder (no '..', no absolute paths, no symbolic links out) and, for
+PNG, at most MAX_IMAGE_PIXELS pixels. An optional file
 that is present but unreadable (a symlink loop, a folder) is an error, never skipped.
 It never writes into the folder. `save_dataset` writes every file atomically; `dataset_identity` is its
 fingerprint (what a fine-tuned adapter records it was trained on).
@@ -33,13 +35,22 @@ from pathlib import Path
 import numpy as np
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json, atomic_write_jsonl, file_sha256, read_json, read_jsonl, stat_tree
+from degusta_learn.fileio import (
+    atomic_write_json,
+    atomic_write_jsonl,
+    file_sha256,
+    path_problem,
+    read_json,
+    read_jsonl,
+    shown_path,
+    stat_tree,
+)
 from degusta_learn.scene.catalog import COLORS, MATERIALS, TYPES, Catalog, CatalogObject
 from degusta_learn.scene.tables import Table
 from degusta_learn.scene.types import Arrangement, Placement, Rating
 from degusta_learn.scene.validate import (
-    MAX_ID, MAX_TRIAL, Where, check_picture, file_inside, get, in_vocabulary, relative_path, require_mapping,
-    unit_interval,
+    MAX_ID, MAX_TRIAL, Where, check_picture, file_inside, get, in_vocabulary, printable_text, relative_path,
+    require_mapping, unit_interval,
 )
 
 DEFAULT_MIN_OBJECTS = 3
@@ -96,6 +107,9 @@ class Dataset:
 
 def load_dataset(root: str | Path) -> Dataset:
     """Read and validate a dataset folder; errors name file, line and field (see `validate_dataset`)."""
+    problem = path_problem(root)  # a NUL byte, a name too long, non-UTF-8, a broken link, a parent that is a file ...
+    if problem:
+        raise DegustaError(f"{shown_path(root)}: {problem}")
     root = Path(root)
     if not root.is_dir():
         if root.exists() or root.is_symlink():
@@ -187,7 +201,7 @@ def _present(path: Path) -> bool:
     return os.path.lexists(path)
 
 
-META_KEYS = {"name": "str", "generator": "str", "description": "str", "latent_styles": "str", "episodes": "str"}
+META_KEYS = {"name": "str", "generator": "str", "description": "prose", "latent_styles": "str", "episodes": "str"}
 PATH_KEYS = ("latent_styles", "episodes")
 VOCABULARY_KEYS = {"classes": TYPES, "colors": COLORS, "materials": MATERIALS}
 
@@ -217,6 +231,8 @@ def _parse_meta(meta, path: Path, root: Path | None) -> dict:
                 raise w.fail(f"vocabulary.{key}", f"unknown key (expected one of {', '.join(VOCABULARY_KEYS)})")
             if not isinstance(words, list) or not all(isinstance(x, str) and 0 < len(x) <= 100 for x in words):
                 raise w.fail(f"vocabulary.{key}", "expected a list of non-empty words")
+            for word in words:  # words are drawn on sheets and written into prompts and reports: printable
+                printable_text(word, f"vocabulary.{key}", w)
     return meta
 
 
@@ -296,6 +312,8 @@ def _parse_tables(data, path: Path, root: Path | None) -> dict[int, Table]:
             raise w.fail("name", f"expected a string, got {type(name).__name__}")
         if name and len(name) > 100:
             raise w.fail("name", f"name of {len(name)} characters is too long (at most 100)")
+        if name:
+            printable_text(name, "name", w)
         tables[tid] = Table(tid, width, height, tuple(pts), name=name or "",
                             image=_check_image(entry.get("image"), root, w))
     return tables

@@ -2,6 +2,11 @@
 
 Each check raises `DegustaError` whose message starts with ``file:line: field 'name'`` so a user knows
 exactly which entry to fix.
+
+Text is printable: every string field read through `get` (names, words, ids, episode ids, method names) and
+every path refuses control and invisible characters (Unicode categories Cc, Cf, Cs, Zl, Zp: newline, tab, NUL,
+U+2028, bidi overrides, zero-width characters, lone surrogates; textsafe.unprintable), so a dataset's words
+cannot break a report line, a prompt or a picture's label, and two ids that look the same are the same.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.textsafe import unprintable
 
 MAX_ID = 999_999  # object and table ids: 0..MAX_ID
 MAX_TRIAL = 999_999_999  # trial numbers: 0..MAX_TRIAL
@@ -53,9 +59,11 @@ def _show(value: Any) -> str:
 
 def get(obj: dict, key: str, kind: str, where: Where, optional: bool = False, default: Any = None,
         lo: float | None = None, hi: float | None = None) -> Any:
-    """Fetch obj[key] checked as `kind` in {'int', 'number', 'str', 'list', 'id', 'bool'}; NaN/inf rejected.
+    """Fetch obj[key] checked as `kind` in {'int', 'number', 'str', 'prose', 'list', 'id', 'bool'}; NaN/inf
+    rejected.
 
-    `lo`/`hi` bound an 'int' or 'number' (inclusive); strings and ids are at most MAX_STR characters.
+    `lo`/`hi` bound an 'int' or 'number' (inclusive); strings and ids are at most MAX_STR characters and
+    printable (`printable_text`); 'prose' is a 'str' that may also hold newlines and tabs (a description).
     """
     if key not in obj or obj[key] is None:
         if optional:
@@ -77,7 +85,7 @@ def get(obj: dict, key: str, kind: str, where: Where, optional: bool = False, de
             raise where.fail(key, f"expected a finite number, got {_show(value)}") from None
         if not math.isfinite(value):
             raise where.fail(key, f"expected a finite number, got {value!r}")
-    elif kind == "str":
+    elif kind in ("str", "prose"):
         if not isinstance(value, str) or not value:
             raise where.fail(key, f"expected a non-empty string, got {_show(value)}")
     elif kind == "id":  # participant ids: strings, or integers taken as their decimal string
@@ -91,9 +99,21 @@ def get(obj: dict, key: str, kind: str, where: Where, optional: bool = False, de
         raise ValueError(kind)
     if isinstance(value, str) and len(value) > MAX_STR:
         raise where.fail(key, f"string of {len(value)} characters is too long (at most {MAX_STR})")
+    if isinstance(value, str):
+        printable_text(value, key, where, allow="\n\r\t" if kind == "prose" else "")
     if kind in ("int", "number") and ((lo is not None and value < lo) or (hi is not None and value > hi)):
         span = f"[{lo}, {hi}]" if lo is not None and hi is not None else f">= {lo}" if lo is not None else f"<= {hi}"
         raise where.fail(key, f"{_show(value)} is out of range (expected {span})")
+    return value
+
+
+def printable_text(value: str, key: str, where: Where, allow: str = "") -> str:
+    """`value` must hold no control or invisible character but those in `allow` (textsafe.unprintable): one
+    line, nothing hidden."""
+    problem = unprintable(value, allow)
+    if problem:
+        raise where.fail(key, f"{_show(value)} holds {problem}; text fields must be printable (no newlines, tabs, "
+                              "control or invisible characters)")
     return value
 
 
@@ -108,8 +128,9 @@ def relative_path(value: Any, key: str, where: Where) -> str:
     """A dataset-relative path: a non-empty string, not absolute, without '..' (it must stay inside)."""
     if not isinstance(value, str) or not value:
         raise where.fail(key, f"expected a relative path string, got {_show(value)}")
-    if len(value) > MAX_STR or "\x00" in value:
-        raise where.fail(key, f"{_show(value)} is not a valid path")
+    if len(value) > MAX_STR or unprintable(value):
+        why = unprintable(value)
+        raise where.fail(key, f"{_show(value)} is not a valid path" + (f" (it holds {why})" if why else ""))
     posix, windows = PurePosixPath(value), PureWindowsPath(value)
     if posix.is_absolute() or windows.is_absolute() or windows.drive or value.startswith(("/", "\\")):
         raise where.fail(key, f"{_show(value)} is an absolute path; paths must be relative to the dataset folder")

@@ -164,8 +164,9 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
                 if with_grammar else None)
         sampler = Sampler(temperature, row_seeds, fmt.stop_ids, proc, on_repeat=on_repeat)
         # The sampler picks each token and hands `generate` a one-hot distribution: nothing may reshape it.
+        # num_beams=1: one row per returned sequence, whatever the folder's generation_config.json says
         kwargs = dict(max_new_tokens=max_new_tokens, eos_token_id=fmt.stop_ids, do_sample=True, temperature=1.0,
-                      top_k=0, top_p=1.0, use_cache=True, num_return_sequences=per_prompt,
+                      top_k=0, top_p=1.0, use_cache=True, num_return_sequences=per_prompt, num_beams=1,
                       pad_token_id=tok.pad_token_id if tok.pad_token_id is not None else fmt.end_id,
                       logits_processor=LogitsProcessorList([sampler]))
         with torch.no_grad():

@@ -199,17 +199,26 @@ def checked_folder(folder: Path, key: str, hub_id: str | None = None) -> Path:
 
 def check_json_files(folder: Path, key: str) -> None:
     """The folder's JSON files the loaders read (model, processor, adapter) parse as JSON objects; else one line
-    naming the file (the libraries' own errors name none, or fail later with an AttributeError)."""
+    naming the file (the libraries' own errors name none, or fail later with an AttributeError). Every size they
+    state is then bounded before anything is built (`vlm/bounds.py`: file sizes before reading, config, processor,
+    generation and adapter sizes, chat templates), each refusal one line naming the file, the key and the bound."""
+    from degusta_learn.vlm import bounds
+
+    parsed = {}
     for name in MODEL_JSON_FILES:
         path = folder / name
         if not path.is_file():
             continue
+        bounds.check_size(path, key)
         try:
             data = json.loads(path.read_bytes())
         except (OSError, ValueError, RecursionError) as e:  # UnicodeDecodeError and JSONDecodeError included
             raise DegustaError(f"{key}: {path}: not readable as JSON ({_first_line(e)[:200]})") from None
         if not isinstance(data, dict):
             raise DegustaError(f"{key}: {path}: expected a JSON object, got {type(data).__name__}")
+        bounds.check_json(path, data, key)
+        parsed[name] = data
+    bounds.check_folder(folder, key, parsed)
 
 
 def _first_line(e: BaseException) -> str:

@@ -6,7 +6,9 @@ One `ChatFormat` per processor, probed once from the chat template:
 - the supervised completion is what the template puts after the generation prompt, cut right after
   the end-of-turn token: e.g. `" [...]<end_of_utterance>"` (SmolVLM) or `"[...]<|im_end|>"` (Qwen2-VL);
 - the stop ids of generation always include that end-of-turn token (so generation stops where
-  training taught it to).
+  training taught it to);
+- the template is rendered by `vlm/chat_template.py`: the text `processor.apply_chat_template` writes, with
+  bounds on time and size, so a template that loops or grows without end is a one-line error within seconds.
 
 `set_image_budget` makes the image cost explicit: one tile per image for Idefics3/SmolVLM (no 17-tile
 blow-ups), fixed pixels for Qwen2-VL; `tokens_per_image` measures it with the real processor.
@@ -21,6 +23,7 @@ from __future__ import annotations
 from PIL import Image
 
 from degusta_learn.errors import DegustaError
+from degusta_learn.vlm.chat_template import render_chat
 
 _PROBE = "ANSWER_PROBE_7"
 _QUESTION = "QUESTION_PROBE_7"
@@ -53,14 +56,12 @@ class ChatFormat:
         tok = self.tokenizer = processor.tokenizer
         if not getattr(processor, "chat_template", None):
             raise DegustaError("model: the processor has no chat template (an instruct/chat VLM is needed)")
+        self._template = processor.chat_template
+        self._special = dict(getattr(tok, "special_tokens_map", None) or {})
         user = [_user_message("x")]
-        try:  # a template that does not parse or raises: the library's error would surface at the first answer
-            prompt = processor.apply_chat_template(user, add_generation_prompt=True, tokenize=False)
-            full = processor.apply_chat_template(user + [assistant_message(_PROBE)], tokenize=False)
-        except Exception as e:
-            text = str(e).strip().splitlines()
-            raise DegustaError(f"model: its chat template cannot render a message ({type(e).__name__}: "
-                               f"{text[0][:200] if text else ''})") from None
+        # a template that does not parse, raises or breaks a bound: one line now, not at the first answer
+        prompt = self.render(user, add_generation_prompt=True)
+        full = self.render(user + [assistant_message(_PROBE)])
         if not full.startswith(prompt) or _PROBE not in full[len(prompt):]:
             raise DegustaError("model: its chat template does not render the answer right after the "
                                "generation prompt; fine-tuning this template is not supported")
@@ -89,8 +90,14 @@ class ChatFormat:
         self.add_bos = bool(bos is not None and tok("x")["input_ids"][:1] == [bos] and not prompt.startswith(
             tok.bos_token or "\0"))
 
+    def render(self, messages: list[dict], add_generation_prompt: bool = False) -> str:
+        """The processor's chat template applied to `messages` (as `processor.apply_chat_template(...,
+        tokenize=False)` writes them), with bounds on its time and size (`vlm/chat_template.py`): a template that
+        loops or grows without end is a one-line DegustaError within seconds."""
+        return render_chat(self._template, messages, add_generation_prompt, self._special)
+
     def prompt_text(self, messages: list[dict]) -> str:
-        text = self.processor.apply_chat_template(messages, add_generation_prompt=True, tokenize=False)
+        text = self.render(messages, add_generation_prompt=True)
         return (self.tokenizer.bos_token + text) if self.add_bos else text
 
     def completion_text(self, answer: str) -> str:
@@ -102,7 +109,7 @@ class ChatFormat:
         of the template's assistant turn, a user turn asking `question` (text only), the generation prompt."""
         if self._followup is None:
             conversation = [_user_message("x"), assistant_message(_PROBE), _user_message(_QUESTION)]
-            follow = self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False)
+            follow = self.render(conversation, add_generation_prompt=True)
             done = self._prompt_probe + self.completion_text(_PROBE)
             if not follow.startswith(done) or _QUESTION not in follow[len(done):]:
                 raise DegustaError("model: its chat template does not render a further user turn after an answer "
@@ -165,6 +172,18 @@ def set_image_budget(processor, model_config, image_size: int | None, key: str =
         ip.do_center_crop = False
     elif image_size:
         ip.size = {"height": image_size, "width": image_size}
+    _check_context(processor, model_config, key)
+
+
+def _check_context(processor, model_config, key: str) -> None:
+    """One image may not cost more image tokens than the language model has positions (a budget the model cannot
+    take: its first prompt would fail, or exhaust memory)."""
+    side = image_tokens_per_side(processor, model_config)
+    text = getattr(model_config, "text_config", None) or model_config
+    positions = getattr(text, "max_position_embeddings", None)
+    if side and isinstance(positions, int) and side * side > positions:
+        raise DegustaError(f"{key}: this budget gives {side} x {side} = {side * side:,} image tokens an image, more "
+                           f"than the model's {positions:,} positions (max_position_embeddings); lower {key}")
 
 
 def tokens_per_image(processor, fmt: ChatFormat, image_token_id: int) -> int:

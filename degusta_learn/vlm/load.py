@@ -18,6 +18,7 @@ from pathlib import Path
 
 from degusta_learn.devices import resolve_device
 from degusta_learn.errors import DegustaError
+from degusta_learn.vlm.bounds import check_adapter, check_weights
 from degusta_learn.vlm.hub import check_json_files, resolve_adapter, resolve_model
 
 DTYPES = ("auto", "float32", "bfloat16", "float16")
@@ -100,6 +101,7 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     device = resolve_device(device, f"{section}.device" if section else "device")
     torch_dtype = resolve_dtype(dtype, device, f"{section}.dtype" if section else "dtype")
     processor = _processor_from(source, model_id_or_path, key)  # the folder's files were checked above
+    check_weights(Path(source), key)  # config.json describes no more than the weights hold (built on meta first)
     extra = {}
     if quantization_config is not None:
         extra = {"quantization_config": quantization_config, "device_map": {"": device}}
@@ -168,8 +170,11 @@ def load_adapter(model, adapter: str | Path, trainable: bool = False, key: str =
         raise DegustaError(f"{key}: {path} has no adapter_config.json (expected a folder written by "
                            "PeftModel.save_pretrained, e.g. checkpoints/<run>/adapter)")
     check_json_files(path, key)
+    # the ranks against the adapter's weights, its regexes resolved to module names with a time limit (vlm/bounds.py)
+    config = check_adapter(path, [name for name, _ in model.named_modules()], key)
     try:
         with quiet_peft():
-            return PeftModel.from_pretrained(model, str(path), is_trainable=trainable)
+            return PeftModel.from_pretrained(model, str(path), is_trainable=trainable,
+                                             **({"config": config} if config is not None else {}))
     except Exception as e:  # a corrupt file, or an adapter of another model: whatever peft raises, one line
         raise DegustaError(f"{key}: cannot load the adapter in {path} onto this model: {_first_line(e)}") from None

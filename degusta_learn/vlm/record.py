@@ -58,8 +58,8 @@ class TrainingData:
     """`scene.dataset.dataset_identity` of that dataset when the record was written."""
     seed: int
     """The participant split seed (`seed` of the training config)."""
-    contexts: list[int]
-    """Context lengths of the training episodes."""
+    contexts: list[int] = bounded(lo=0, hi=1000)
+    """Context lengths of the training episodes (as `--context`: 0 to 1,000)."""
     train_participants: list[str]
     """The participants of the training split (all of them, also when `data.max_train_episodes` subsampled)."""
     val_participants: list[str]
@@ -111,8 +111,8 @@ class FinetuneRecord:
     """The grid of grid methods."""
     prompt: PromptOptions
     """Image groups sent and groups composed into one canvas (`data.include`, `data.compose`)."""
-    image_size: int | None
-    """The processor's image budget (`model.image_size`; null: the model's default)."""
+    image_size: int | None = bounded(lo=16, hi=4096)
+    """The processor's image budget (`model.image_size`, 16 to 4,096; null: the model's default)."""
     render_size: int = bounded(lo=16, hi=4096)
     """Pixels per side the lifted images were drawn at (`data.render_size`)."""
     processor_size: dict[str, Any]
@@ -136,12 +136,13 @@ class BaseRecord:
     version: int = BASE_VERSION
     architecture: dict[str, Any]
     """`BaseArchitecture` as a dict."""
-    parameters: int
-    image_size: int
+    parameters: int = bounded(lo=0, hi=10**13)
+    image_size: int = bounded(lo=16, hi=4096)
     """The model's image size (the processor's budget)."""
     render_size: int = bounded(lo=16, hi=4096)
     """Pixels per side the images were drawn at in pretraining (= image_size: no resizing)."""
-    tokens_per_image: int
+    tokens_per_image: int = bounded(lo=1, hi=2**16)
+    """Image tokens an image costs (at most 2^16, as vlm/bounds.py bounds a processor)."""
     grid: Grid
     prompt: PromptOptions
     """The prompt layout of pretraining; the hf backend prompts the base this way zero-shot."""
@@ -204,9 +205,50 @@ def read_record(path: str | os.PathLike) -> FinetuneRecord | BaseRecord:
         raise DegustaError(f"{path}: written by an older degusta (format {version}; this one reads format "
                            f"{current}); {remedy}")
     try:
-        return from_dict(cls, data, where=str(path))
+        record = from_dict(cls, data, where=str(path), probe_paths=False)  # paths as they were then
     except DegustaError as e:
         raise DegustaError(f"{e}; {remedy}") from None
+    free = {"architecture": record.architecture} if cls is BaseRecord else {"processor_size": record.processor_size}
+    for field, value in free.items():  # free-form numbers: finite, and within 32 bits (sizes, counts, pixels)
+        _check_free_numbers(value, field, path, remedy)
+    if cls is BaseRecord:
+        _check_architecture(record.architecture, path, remedy)
+    return record
+
+
+def _check_architecture(arch: dict, path: Path, remedy: str) -> None:
+    """The architecture's sizes within the bounds of the pretrain config that made it (`BaseArchitecture`)."""
+    from degusta_learn.config import _check_bounds
+    from degusta_learn.finetune.pretrain.base import BaseArchitecture
+
+    for f in dataclasses.fields(BaseArchitecture):
+        bounds = f.metadata.get("bounds")
+        if bounds is not None and f.name in arch:
+            try:
+                _check_bounds(arch[f.name], bounds, str(path), f"architecture.{f.name}")
+            except DegustaError as e:
+                raise DegustaError(f"{e}; {remedy}") from None
+
+
+MAX_FREE_NUMBER = 2**31
+"""Largest number in a record's free-form fields (`architecture`, `processor_size`)."""
+
+
+def _check_free_numbers(value: Any, field: str, path: Path, remedy: str) -> None:
+    import math
+
+    stack = [(field, value)]
+    while stack:
+        name, v = stack.pop()
+        if isinstance(v, dict):
+            stack.extend((f"{name}.{k}", x) for k, x in list(v.items())[:10_000])
+        elif isinstance(v, list):
+            stack.extend((f"{name}[{i}]", x) for i, x in enumerate(v[:10_000]))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool) and not (
+                math.isfinite(v) and abs(v) <= MAX_FREE_NUMBER):
+            shown = f"{v:,}" if isinstance(v, float) or v.bit_length() < 100 else f"an integer of {len(str(v))} digits"
+            raise DegustaError(f"{path}: {name}: expected a number of at most {MAX_FREE_NUMBER:,}, got {shown}; "
+                               f"{remedy}")
 
 
 def _retrain(path: Path) -> str:

@@ -56,9 +56,7 @@ def recipe_command(cfg, ran: dict | None = None) -> str:
     the arithmetic that built this one."""
     import shlex
 
-    import yaml
-
-    from degusta_learn.config import load_config, to_dict
+    from degusta_learn.config import dump_yaml, load_config, to_dict
     from degusta_learn.errors import DegustaError
     from degusta_learn.shipped import SHIPPED_DIR
 
@@ -71,7 +69,7 @@ def recipe_command(cfg, ran: dict | None = None) -> str:
     except (DegustaError, OSError):  # the folder's resolved config is the recipe then
         return f"degusta train --config {PRETRAIN_CONFIG} (the resolved config in this folder)"
     values = dict(flat(to_dict(cfg))) | (ran or {})
-    sets = [f"{k}={yaml.safe_dump(v, default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}"
+    sets = [f"{k}={dump_yaml(v, default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}"
             for k, v in values.items() if k not in _LOGISTICS and shipped.get(k, object()) != v]
     return " ".join([COMMAND, *(f"--set {shlex.quote(s)}" for s in sets)])
 
@@ -81,7 +79,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     """Save `model` + `processor` to `out` with degusta_base.json, pretrain_config.yaml and README.md.
 
     `steps`: the training step of these weights (the best validation's); `run_steps`: how long the run went."""
-    from degusta_learn.config import to_dict
+    from degusta_learn.config import dump_yaml, to_dict
     from degusta_learn.finetune.export import MODEL_FOLDER
     from degusta_learn.outdir import write_folder
     from degusta_learn.render.grid import Grid
@@ -127,9 +125,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
         if (run_dir / "config.yaml").is_file():
             shutil.copyfile(run_dir / "config.yaml", tmp / PRETRAIN_CONFIG)
         else:
-            import yaml
-
-            atomic_write_text(tmp / PRETRAIN_CONFIG, yaml.safe_dump(to_dict(cfg), sort_keys=False))
+            atomic_write_text(tmp / PRETRAIN_CONFIG, dump_yaml(to_dict(cfg)))
         write_card(tmp, name=out.name, path=out)
     return out
 

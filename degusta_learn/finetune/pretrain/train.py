@@ -282,10 +282,13 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
         from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
 
         RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, cfg.model.tokens_per_image, grid)
-    init.mkdir(parents=True, exist_ok=True)
-    model.save_pretrained(str(init))
-    processor.save_pretrained(str(init))
-    atomic_write_json(init / "degusta_init.json", {"note": "random initial weights of a pretrain run"})
+    from degusta_learn.writeerrors import writing
+
+    with writing(init, "initial model", after="; free space and re-run (it is rebuilt)"):  # one line, no traceback
+        init.mkdir(parents=True, exist_ok=True)
+        model.save_pretrained(str(init))
+        processor.save_pretrained(str(init))
+    atomic_write_json(init / "degusta_init.json", {"note": "random initial weights of a pretrain run"})  # last: marks it whole
     return init
 
 

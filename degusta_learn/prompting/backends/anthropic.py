@@ -29,6 +29,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.answers import STRUCTURED_KEY, STRUCTURED_NAME
 from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
 from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig, retry_after
+from degusta_learn.prompting.backends.transport import fault_reason, guarded_client
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -71,7 +72,8 @@ class AnthropicBackend(RemoteBackend):
     def from_config(cls, cfg: AnthropicConfig, grid=None, catalog=None) -> AnthropicBackend:
         key = api_key(cfg.api_key_env or cls.key_env)
         anthropic = _import()
-        client = anthropic.Anthropic(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
+        client = anthropic.Anthropic(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0,
+                                     http_client=guarded_client(cfg.timeout, anthropic))  # transport.py
         return cls(cfg.model, client, AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     @staticmethod
@@ -109,7 +111,14 @@ class AnthropicBackend(RemoteBackend):
             except (anthropic.APITimeoutError, anthropic.APIConnectionError) as e:
                 if out:
                     break
-                raise BackendError(f"anthropic: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
+                why = fault_reason(e)  # the request's deadline, or a reply refused for its size (transport.py)
+                raise BackendError(f"anthropic: {self.model}: {why}" if why else
+                                   f"anthropic: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
+            except ValueError as e:  # a 200 whose body is not JSON (an HTML page, a truncated body)
+                if out:
+                    break
+                raise BackendError(f"anthropic: {self.model} answered with a malformed body ({type(e).__name__}); "
+                                   "retrying", retryable=True) from None
             text = answer_text(resp.content)
             usage = getattr(resp, "usage", None)
             out.append(Completion(text=text, input_tokens=getattr(usage, "input_tokens", None),

@@ -5,8 +5,8 @@ A backend is one file: a `Backend` subclass and its config dataclass (a `Backend
 own keys), registered by name in `BACKENDS` ("module:Class", imported on first use). The class says what
 the backend is, and the runner and the cost estimator ask it, never its name, without building one (so a
 dry run loads no model): `per_sample` (one request per sample, or n in one), `cacheable`, `takes_schema`
-(structured outputs), `key_env`, `is_local(cfg)` (local backends cost nothing), `image_tokens` and
-`price` (what a request costs). `make_backend(cfg, grid, catalog)` builds one (`from_config`; only the hf
+(structured outputs), `key_env`, `empty_is_fault` (an empty answer is the server's fault: retried),
+`is_local(cfg)` (local backends cost nothing), `image_tokens` and `price` (what a request costs). `make_backend(cfg, grid, catalog)` builds one (`from_config`; only the hf
 backend uses grid + catalog, for constrained decoding). Backends do no retrying and no caching: the
 runner does both. A failed request raises `BackendError`; `retryable=True` (rate limits, server errors,
 timeouts, dropped connections) makes the runner back off and retry, `fatal=True` (bad key, unknown
@@ -164,6 +164,11 @@ class Backend:
     """Appended to the error refusing `structured_output: true` (what to use instead)."""
     key_env: ClassVar[str | None] = None
     """The environment variable its API key is read from when `api_key_env` is unset (None: no key)."""
+    empty_is_fault: ClassVar[bool] = False
+    """True (the backends that call a server): a reply without an answer -- no choices / content / candidates, a
+    null message, empty or blank text -- is a server fault, retried with the backoff and, retries exhausted, an
+    unanswered episode (never a failed sample); False: an empty answer is the model's (a local model, a recorded
+    file), a counted failure."""
 
     @classmethod
     def is_local(cls, cfg: BackendConfig) -> bool:

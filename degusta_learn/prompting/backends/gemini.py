@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
 from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig
+from degusta_learn.prompting.backends.transport import fault_reason, guarded_client, guarded_transport
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -69,9 +70,13 @@ class GeminiBackend(RemoteBackend):
     def from_config(cls, cfg: GeminiConfig, grid=None, catalog=None) -> GeminiBackend:
         key = api_key(cfg.api_key_env or cls.key_env)
         genai, types, _ = _import()
-        options = types.HttpOptions(base_url=cfg.base_url, timeout=int(cfg.timeout * 1000)) if cfg.base_url \
-            else types.HttpOptions(timeout=int(cfg.timeout * 1000))
-        return cls(cfg.model, genai.Client(api_key=key, http_options=options),
+        options = {"timeout": max(1, int(cfg.timeout * 1000)), **({"base_url": cfg.base_url} if cfg.base_url else {})}
+        fields = getattr(types.HttpOptions, "model_fields", {})
+        if "httpx_client" in fields:  # one deadline a request, bounded replies (transport.py)
+            options["httpx_client"] = guarded_client(cfg.timeout)
+        elif "client_args" in fields:  # an older google-genai: the client it builds gets the same transport
+            options["client_args"] = {"transport": guarded_transport(cfg.timeout)}
+        return cls(cfg.model, genai.Client(api_key=key, http_options=types.HttpOptions(**options)),
                    AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
@@ -93,12 +98,19 @@ class GeminiBackend(RemoteBackend):
                 code = int(getattr(e, "code", 0) or 0)
                 raise BackendError(f"gemini: HTTP {code} from {self.model}: {str(e)[:300]}", status=code,
                                    fatal=code in (401, 403, 404), retryable=code in (408, 429) or code >= 500) from None
+            except ValueError as e:  # a 200 whose body is not JSON (an HTML page, a truncated body)
+                if out:
+                    break
+                raise BackendError(f"gemini: {self.model} answered with a malformed body ({type(e).__name__}); "
+                                   "retrying", retryable=True) from None
             except Exception as e:  # timeouts and dropped connections of google-genai's HTTP library
-                if not _transient(e):
+                why = fault_reason(e)  # the request's deadline, or a reply refused for its size (transport.py)
+                if not (why or _transient(e)):
                     raise
                 if out:
                     break
-                raise BackendError(f"gemini: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
+                raise BackendError(f"gemini: {self.model}: {why}" if why else
+                                   f"gemini: {type(e).__name__}: {str(e)[:300]}", retryable=True) from None
             usage = getattr(resp, "usage_metadata", None)
             out.append(Completion(text=resp.text or "", input_tokens=getattr(usage, "prompt_token_count", None),
                                   output_tokens=getattr(usage, "candidates_token_count", None)))

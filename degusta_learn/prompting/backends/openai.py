@@ -37,6 +37,7 @@ from degusta_learn.prompting import costs
 from degusta_learn.prompting.answers import STRUCTURED_NAME
 from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
 from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig, retry_after
+from degusta_learn.prompting.backends.transport import fault_reason, guarded_client
 from degusta_learn.prompting.prompt import ImagePart, Prompt
 
 
@@ -90,7 +91,8 @@ class OpenAIBackend(RemoteBackend):
         # proxy) gets a key only from a variable named explicitly in backend.api_key_env.
         official = cfg.base_url is None or (urlparse(cfg.base_url).hostname or "").endswith("api.openai.com")
         key = (api_key(cfg.api_key_env or cls.key_env) if cfg.api_key_env or official else None) or "not-needed"
-        client = openai.OpenAI(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0)
+        client = openai.OpenAI(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0,
+                               http_client=guarded_client(cfg.timeout, openai))  # a deadline, bounded replies
         return cls(cfg.model, client, cfg.detail,
                    AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
@@ -138,10 +140,14 @@ class OpenAIBackend(RemoteBackend):
                                    "backend.structured_output=false", fatal=True, status=status) from None
             raise BackendError(msg, retryable=status in (408, 409, 429) or status >= 500,
                                retry_after=retry_after(e.response.headers), status=status) from None
-        except openai.APITimeoutError:
-            raise BackendError(f"openai: request to {self.model} timed out", retryable=True) from None
+        except openai.APITimeoutError as e:
+            why = fault_reason(e)
+            raise BackendError(f"openai: request to {self.model} timed out" + (f" ({why})" if why else ""),
+                               retryable=True) from None
         except openai.APIConnectionError as e:
-            raise BackendError(f"openai: cannot reach the server ({_message(e)})", retryable=True) from None
+            why = fault_reason(e)  # a reply refused for its size or encoding (transport.py)
+            raise BackendError(f"openai: {self.model}: {why}" if why else
+                               f"openai: cannot reach the server ({_message(e)})", retryable=True) from None
         except openai.OpenAIError as e:
             raise BackendError(f"openai: {_message(e)}") from None
         except ValueError as e:  # a 200 whose JSON body is malformed (JSONDecodeError, pydantic errors)

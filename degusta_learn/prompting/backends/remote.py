@@ -33,7 +33,8 @@ class RemoteConfig(BackendConfig):
     api_key_env: str | None = None
     """Environment variable holding the API key (default: the backend's, e.g. OPENAI_API_KEY)."""
     timeout: float = 120.0
-    """Seconds before a request counts as timed out (then retried)."""
+    """Seconds a request may take in all -- connecting, sending, the status line and the whole reply (also
+    each wait for a byte) -- before it counts as timed out and is retried (backends/transport.py)."""
 
     answer_keys = ("base_url",)
 
@@ -56,6 +57,8 @@ def is_loopback(base_url: str | None) -> bool:
 class RemoteBackend(Backend):
     """A backend reached over HTTP at `base_url`: local (free unless `prices` names the model) when that is a
     server or proxy on this machine, a paid service otherwise."""
+
+    empty_is_fault = True  # a 200 without an answer is the server's fault (retried), not the model's
 
     @classmethod
     def is_local(cls, cfg: RemoteConfig) -> bool:
