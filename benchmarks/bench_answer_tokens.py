@@ -9,8 +9,8 @@ validation episodes into content and syntax tokens (docs/finetune.md, "What the 
 
 Usage:
     python benchmarks/bench_answer_tokens.py                               # share with the real tokenizer
-    python benchmarks/bench_answer_tokens.py --model checkpoints/tiny/idefics3_scratch \\
-        --run checkpoints/finetune_tiny_scratch_cpu --weights best_model --episodes 16
+    python benchmarks/bench_answer_tokens.py --model runs/tiny/idefics3_scratch \\
+        --run runs/finetune_tiny_scratch_cpu --weights best_model --episodes 16
 """
 
 from __future__ import annotations
@@ -117,9 +117,9 @@ def main() -> None:
 
     from transformers import AutoTokenizer
 
-    from degusta_learn.prompting.answers import answer_items, format_answer
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
+    from degusta_learn.task.answer_format import answer_items, format_answer
 
     ds, grid = load_dataset(args.data), Grid(8, 8)
     tok = AutoTokenizer.from_pretrained(args.tokenizer)

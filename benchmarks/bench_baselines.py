@@ -26,7 +26,12 @@ import numpy as np  # noqa: E402
 
 from degusta_learn.methods import get_method  # noqa: E402
 from degusta_learn.metrics import (  # noqa: E402
-    PAPER_ACCEPTABILITY, THRESHOLDS, acceptability_curve, bootstrap_ci, fraction_acceptable, score_many,
+    PAPER_ACCEPTABILITY,
+    THRESHOLDS,
+    acceptability_curve,
+    bootstrap_ci,
+    fraction_acceptable,
+    score_many,
 )
 from degusta_learn.scene import load_dataset, make_episodes, read_episodes  # noqa: E402
 from degusta_learn.synth import generate_dataset, naturalistic_with_styles  # noqa: E402

@@ -162,8 +162,7 @@ _CELL = re.compile(r"""['"]([A-Z]\d+)['"]""")  # (the parser merges a repeated c
 
 def judge(tokens, tok, stop_ids, kind, catalog, grid) -> dict:
     """What `read_answer` makes of one walk's text (counts)."""
-    from degusta_learn.prompting import AnswerParseError, read_answer
-
+    from degusta_learn.task.answers import AnswerParseError, read_answer
     stopped = bool(tokens) and tokens[-1] in stop_ids
     text = tok.decode(tokens[:-1] if stopped else tokens, skip_special_tokens=True)
     out = dict.fromkeys(("parsed", "unclosed", "empty", "type", "repeat", "cells", "other", "items"), 0)
@@ -203,10 +202,10 @@ def main():
     import xgrammar as xgr
     from transformers import AutoTokenizer
 
-    from degusta_learn.vlm.grammar import AnswerGrammar
-    from degusta_learn.prompting.answers import answer_schema
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import default_catalog
+    from degusta_learn.task.answer_format import answer_schema
+    from degusta_learn.task.grammar import AnswerGrammar
 
     torch.set_num_threads(args.threads)
     tok = AutoTokenizer.from_pretrained(TOKENIZER)

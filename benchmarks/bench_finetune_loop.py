@@ -32,13 +32,13 @@ def batches_for(kind: str, n: int, batch_size: int, ds, cache: Path):
     """(model, processor, batches, data seconds per batch) for tiny `kind`."""
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.data import LiftedExamples
-    from degusta_learn.vlm.prompt_options import PromptOptions
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import make_episodes
     from degusta_learn.vlm.generate import chat_format
     from degusta_learn.vlm.inputs import set_image_budget
     from degusta_learn.vlm.load import load_vlm
-    from degusta_learn.vlm.tiny import ensure_tiny
-    from degusta_learn.render.grid import Grid
-    from degusta_learn.scene import make_episodes
+    from degusta_learn.vlm.prompt_options import PromptOptions
+    from degusta_learn.vlm.random_models.tiny import ensure_tiny
 
     model, processor = load_vlm(str(ensure_tiny(cache / kind, kind)), device="cpu", dtype="float32")
     set_image_budget(processor, model.config, None)
@@ -80,7 +80,7 @@ def lightning_loop(model, processor, batches, lr: float, mode: str) -> list[floa
 
     from degusta_learn.finetune.lora import LoraConfig
     from degusta_learn.finetune.module import FinetuneModule
-    from degusta_learn.trainer import TrainerConfig, build_trainer
+    from degusta_learn.training import TrainerConfig, build_trainer
 
     starts: list[float] = []
 
@@ -117,8 +117,8 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     from degusta_learn.finetune.lora import LoraConfig, apply_lora
-    from degusta_learn.vlm.load import quiet_transformers
     from degusta_learn.scene import load_dataset
+    from degusta_learn.vlm.load import quiet_transformers
 
     quiet_transformers()
     ds = load_dataset(args.dataset)

@@ -79,7 +79,7 @@ def main() -> None:
                                                            hf + [f"backend.model={run / 'model'}",
                                                                  "backend.constrained=false"]),
         "tiny VLM, untrained (constrained)": ("configs/predict_hf_tiny_zeroshot.yaml",
-                                             hf + ["backend.model=checkpoints/tiny/idefics3_scratch"]),
+                                             hf + ["backend.model=runs/tiny/idefics3_scratch"]),
         "population_mean": ("configs/baseline_population_mean.yaml", common),
         "random": ("configs/baseline_random.yaml", common),
     }

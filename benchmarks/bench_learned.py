@@ -9,8 +9,8 @@ episodes with Kabsch RMSD <= t, and the ratios the quality bar is stated in (lea
 Usage:
     degusta data generate naturalistic --out data/naturalistic
     degusta train --config configs/learned_cpu.yaml
-    python benchmarks/bench_learned.py --checkpoint checkpoints/learned_cpu      # ~1 min on one core
-    python benchmarks/bench_learned.py --checkpoint checkpoints/learned_cpu --split val
+    python benchmarks/bench_learned.py --checkpoint runs/learned_cpu      # ~1 min on one core
+    python benchmarks/bench_learned.py --checkpoint runs/learned_cpu --split val
 """
 
 import os
@@ -25,7 +25,11 @@ import numpy as np  # noqa: E402
 
 from degusta_learn.methods import get_method  # noqa: E402
 from degusta_learn.metrics import (  # noqa: E402
-    THRESHOLDS, bootstrap_ci, fraction_acceptable, paired_bootstrap, score_many,
+    THRESHOLDS,
+    bootstrap_ci,
+    fraction_acceptable,
+    paired_bootstrap,
+    score_many,
 )
 from degusta_learn.scene import load_dataset, make_episodes  # noqa: E402
 

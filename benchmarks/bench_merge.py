@@ -34,10 +34,10 @@ def main() -> None:
     import copy
 
     from degusta_learn.prompting.backends.hf import HFBackend
-    from degusta_learn.prompting.prompt import build_prompt
     from degusta_learn.render.grid import Grid
     from degusta_learn.render.lifting import Renderer
     from degusta_learn.scene import load_dataset, make_episodes
+    from degusta_learn.task.prompt import build_prompt
     from degusta_learn.vlm.load import load_vlm
 
     ds = load_dataset(args.dataset)

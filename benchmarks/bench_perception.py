@@ -99,16 +99,16 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    from degusta_learn.fileio import atomic_write_json, read_json
-    from degusta_learn.vlm.generate import generate_answers
-    from degusta_learn.vlm.grammar import AnswerGrammar
-    from degusta_learn.vlm.inputs import set_image_budget
-    from degusta_learn.vlm.load import load_vlm
-    from degusta_learn.finetune.pretrain.export import BASE_META, PERCEPTION, write_card
-    from degusta_learn.finetune.pretrain.score import score_answer, summarize
-    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
+    from degusta_learn.files.jsonio import atomic_write_json, read_json
+    from degusta_learn.pretrain.export import BASE_META, PERCEPTION, write_card
+    from degusta_learn.pretrain.score import score_answer, summarize
+    from degusta_learn.pretrain.tasks import PerceptionExamples, TaskMix
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import default_catalog, default_tables
+    from degusta_learn.task.grammar import AnswerGrammar
+    from degusta_learn.vlm.generate import generate_answers
+    from degusta_learn.vlm.inputs import set_image_budget
+    from degusta_learn.vlm.load import load_vlm
 
     folder = Path(args.model)
     meta = read_json(folder / BASE_META)

@@ -36,8 +36,8 @@ def build(overrides: list[str], run_dir: Path):
     """(module, training examples, their collator, cfg) of the recipe under `overrides`, built by `build_recipe` as
     `pretrain.train.run` builds them."""
     from degusta_learn.config import load_config
-    from degusta_learn.finetune.pretrain.export import RECIPE
-    from degusta_learn.finetune.pretrain.train import PretrainConfig, build_recipe
+    from degusta_learn.pretrain.export import RECIPE
+    from degusta_learn.pretrain.train import PretrainConfig, build_recipe
     from degusta_learn.shipped import SHIPPED_DIR
 
     cfg = load_config(PretrainConfig, str(SHIPPED_DIR / RECIPE), overrides)
@@ -47,7 +47,7 @@ def build(overrides: list[str], run_dir: Path):
 
 def stepped_module():
     """PerceptionModule with a settable step (there is no Trainer here) and `log` a no-op."""
-    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.pretrain.module import PerceptionModule
 
     class Stepped(PerceptionModule):
         step = 0
@@ -128,10 +128,10 @@ def main(argv=None) -> int:
     import torch
 
     from degusta_learn.config import load_config
-    from degusta_learn.finetune.pretrain.export import RECIPE
-    from degusta_learn.finetune.pretrain.train import PretrainConfig
+    from degusta_learn.pretrain.export import RECIPE
+    from degusta_learn.pretrain.train import PretrainConfig
     from degusta_learn.shipped import SHIPPED_DIR
-    from degusta_learn.trainer import pin_cpu_kernels
+    from degusta_learn.training import pin_cpu_kernels
 
     kernels = pin_cpu_kernels(load_config(PretrainConfig, str(SHIPPED_DIR / RECIPE), a.set).trainer.cpu_kernels)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {kernels} kernels (the recipe's "

@@ -40,7 +40,12 @@ from degusta_learn.render import sprites  # noqa: E402
 from degusta_learn.render.grid import Grid, quantization_rmsd  # noqa: E402
 from degusta_learn.render.lifting import Renderer  # noqa: E402
 from degusta_learn.scene import (  # noqa: E402
-    Arrangement, Dataset, Placement, default_catalog, default_tables, make_episodes,
+    Arrangement,
+    Dataset,
+    Placement,
+    default_catalog,
+    default_tables,
+    make_episodes,
 )
 
 

@@ -1,7 +1,7 @@
 """Full-size replicas of the GPU fine-tuning configs, run for real on the CPU, or with --gpu on one GPU as the config
 is written (opt-in; NOT run in CI; benchmarks/gpu_check.sh runs the --gpu form).
 
-Per replica (degusta_learn/vlm/replicas.py: published sizes, random weights, built offline):
+Per replica (degusta_learn/vlm/random_models/replicas.py: published sizes, random weights, built offline):
   1. token budget over the WHOLE training set, exactly as `degusta train --dry-run` counts it (image / other
      prompt / answer tokens per example, max and mean), and the dry run's predicted memory (model in
      degusta_learn/dryrun.py) for the CPU fp32 run below and for the config as written (GPU bf16);
@@ -74,7 +74,7 @@ class PeakRSS:
 
 
 def config_path(name: str) -> Path:
-    from degusta_learn.vlm.replicas import replica_spec
+    from degusta_learn.vlm.random_models.replicas import replica_spec
 
     return ROOT / replica_spec(name)["configs"][0]
 
@@ -108,14 +108,14 @@ def token_stats(name: str, over: list[str]) -> dict:
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.vlm.inputs import ChatFormat
-    from degusta_learn.vlm.load import load_processor
-    from degusta_learn.finetune.train import build_examples
-    from degusta_learn.finetune.token_count import count_tokens, set_budget
     from degusta_learn.finetune.dry_run import meta_model
+    from degusta_learn.finetune.token_count import count_tokens, set_budget
+    from degusta_learn.finetune.train import build_examples
     from degusta_learn.methods import run_train
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
+    from degusta_learn.vlm.inputs import ChatFormat
+    from degusta_learn.vlm.load import load_processor
 
     full = [o for o in over if not o.startswith(("data.max_train_episodes", "data.val_episodes"))]
     cfg = load_config(FinetuneConfig, config_path(name), full)
@@ -219,7 +219,7 @@ def child(name: str, over: list[str], out_json: Path) -> None:
 
 
 def main(argv=None) -> int:
-    from degusta_learn.vlm.replicas import REPLICAS, build_replica
+    from degusta_learn.vlm.random_models.replicas import REPLICAS, build_replica
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("names", nargs="*", default=list(REPLICAS))

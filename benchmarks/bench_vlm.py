@@ -21,7 +21,7 @@ Usage:
     python benchmarks/bench_vlm.py --modes lora --seeds 0 1 --out OUT
         # one fine-tune per training seed (`trainer.seed`; the participant split stays): a row per seed, and a
         # row of each episode's mean over the seeds, which the paired tests use (a seed alone moved object
-        # accuracy by 0.035: docs/tiny_base.md point 32)
+        # accuracy by 0.035: experiments/tiny_base_log.md point 32)
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def plot_curve(runs: dict[str, Path], out: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from degusta_learn.trainer import validation_curve
+    from degusta_learn.training import validation_curve
 
     curves = {name: rows for name, run_dir in runs.items() if (rows := validation_curve(run_dir, "val/rmsd"))}
     if not curves:

@@ -1,6 +1,6 @@
 """Choose a decoding on the validation participants, then score only that one on the test episodes.
 
-A fine-tune's answers to the same prompts can become one plan in several ways (`prompting/aggregate.py`): the greedy
+A fine-tune's answers to the same prompts can become one plan in several ways (`task/aggregate.py`): the greedy
 answer, the paper's per-step modes, object votes, the greedy answer lengthened by votes (`greedy_votes`), that
 with each of the greedy answer's objects placed from every answer naming it (`greedy_votes` + `pooled`), and that at
 the context tables' median count (`greedy_votes_context`, which reads the episodes' contexts from the dataset). One
@@ -37,7 +37,7 @@ LOWER_IS_BETTER = {"rmsd": True, "set_rmsd": True, "count_error": True, "object_
 
 def parsed(text, catalog, grid):
     """The items of one stored answer, or None when it is missing or does not parse (as predict reads it)."""
-    from degusta_learn.prompting.answers import AnswerParseError, read_answer
+    from degusta_learn.task.answers import AnswerParseError, read_answer
 
     if not isinstance(text, str):
         return None
@@ -53,7 +53,7 @@ def decodings(prediction, catalog, grid, samples: int | None = None,
     answers only (what a run with that `n` would have combined: predict samples answer i with the same seed
     whatever n is), all of them when None; `context_counts`: the episode's context tables' object counts
     (greedy_votes_context's length; None: the samples' median, as predict does for an episode without context)."""
-    from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, anchored_votes, context_length
+    from degusta_learn.task.aggregate import aggregate, aggregate_votes, anchored_votes, context_length
 
     diag = prediction.diagnostics or {}
     stored = diag.get("responses") or []
