@@ -122,8 +122,7 @@ def cmd_predict(args) -> str:
 def cmd_train(args) -> str | Result:
     from degusta_learn.dryrun import DryRunReport
     from degusta_learn.methods import run_train
-
-    from degusta_learn.trainer import global_rank
+    from degusta_learn.training import global_rank
 
     out = run_train(args.config, args.set, dry_run=args.dry_run)
     if global_rank() != 0:  # the other processes of a multi-process run say nothing (rank 0 reports)
@@ -165,7 +164,7 @@ def cmd_render_catalog(args) -> str:
 
 
 def cmd_quickstart(args) -> Result:
-    from degusta_learn.evaluate.quickstart import run_quickstart
+    from degusta_learn.quickstart import run_quickstart
 
     result = run_quickstart(args.out, small=args.small, with_api=args.with_api)
     report = result.out
@@ -227,10 +226,10 @@ def _int_in(lo: int, hi: int) -> Callable[[str], int]:
 
 
 def _checked(text: str) -> str:
-    """`text` with `~` expanded, or ArgumentTypeError "PATH: why" (fileio.check_path: a NUL byte, a name or path too
+    """`text` with `~` expanded, or ArgumentTypeError "PATH: why" (files.paths.check_path: a NUL byte, a name or path too
     long for the file system, non-UTF-8 bytes, a parent that is a file, a broken link, an unknown ~user ...); argparse
     names the flag."""
-    from degusta_learn.fileio import check_path, shown_path
+    from degusta_learn.files.paths import check_path, shown_path
 
     expanded, problem = check_path(text)
     if problem:

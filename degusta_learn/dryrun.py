@@ -27,7 +27,7 @@ from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 from degusta_learn.errors import MachineMismatch
-from degusta_learn.trainer import TrainerConfig, check_trainer, effective_precision, world_size
+from degusta_learn.training import TrainerConfig, check_trainer, effective_precision, world_size
 
 GiB = 1024**3
 ADAMW_STATE_BYTES = 8

@@ -63,7 +63,7 @@ def lr_schedule(optimizer: torch.optim.Optimizer, cfg: OptimConfig, total_steps:
 def warmup_factor(cfg: OptimConfig, step: int, total_steps: int) -> float:
     """The multiplier of `cfg.lr` at optimizer step `step` of `total_steps` under `lr_schedule` (the same linear
     warmup, then cosine to `min_lr_ratio` or constant), for a schedule that starts later than step 0, e.g. the
-    decoder's after pretraining's vision stage (`finetune/pretrain/module.py`)."""
+    decoder's after pretraining's vision stage (`pretrain/module.py`)."""
     total = max(1, int(total_steps))
     warm = min(cfg.warmup_steps, total // 2)
     if step < warm:

@@ -17,7 +17,7 @@ Steps (each prints what it does; a re-run reuses what an interrupted run finishe
 Every config it runs is written to `<out>/configs/` so that each step can be re-run or changed by hand.
 
 Whose folder: quickstart writes only into a folder it created or one it wrote before. Before anything else it
-checks `--out` (`fileio.user_path`) and the marker file `MARKER` (.degusta_quickstart.json) it leaves there: a new
+checks `--out` (`files.paths.user_path`) and the marker file `MARKER` (.degusta_quickstart.json) it leaves there: a new
 or empty folder is claimed (the marker is written first), a folder holding the marker is resumed, and any other
 non-empty folder (or a file) is refused with one line naming --out and the folder, nothing written, so files of
 the user's that happen to have the names quickstart writes (episodes.jsonl, configs/, report/ ...) are never replaced.
@@ -33,10 +33,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from degusta_learn.config import apply_overrides, dump_yaml, read_yaml
-from degusta_learn.fileio import atomic_write_json, atomic_write_text, read_json, shown_path, user_path
+from degusta_learn.errors import DegustaError
+from degusta_learn.files.atomic import atomic_write_text
+from degusta_learn.files.jsonio import atomic_write_json, read_json
+from degusta_learn.files.paths import shown_path, user_path
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.scene import Episode, load_dataset, make_episodes, participants_in, write_episodes
-from degusta_learn.errors import DegustaError
 from degusta_learn.shipped import BASE_DIR, BASE_NAME, shipped_base, shipped_config
 
 if TYPE_CHECKING:

@@ -18,7 +18,7 @@ import re
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_bytes
+from degusta_learn.files.atomic import atomic_write_bytes
 
 SHIPPED_DIR = Path(__file__).resolve().parent / "configs"
 PURPOSE_CHARS = 110  # a purpose longer than this is cut at a word boundary and ends with "…"

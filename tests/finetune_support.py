@@ -20,9 +20,9 @@ torch.set_num_threads(1)
 from conftest import make_small_dataset  # noqa: E402
 
 from degusta_learn.finetune.data import LiftedExamples  # noqa: E402
-from degusta_learn.vlm.prompt_options import PromptOptions  # noqa: E402
 from degusta_learn.render.grid import Grid  # noqa: E402
 from degusta_learn.scene import make_episodes  # noqa: E402
+from degusta_learn.vlm.prompt_options import PromptOptions  # noqa: E402
 
 GRID = Grid(8, 8)
 
@@ -35,7 +35,7 @@ def cache_dir() -> Path:
 @functools.cache
 def tiny_dir(kind: str) -> Path:
     """Folder of the tiny `kind` model (idefics3 / qwen2vl), built on first use."""
-    from degusta_learn.vlm.tiny import ensure_tiny
+    from degusta_learn.vlm.random_models.tiny import ensure_tiny
 
     return ensure_tiny(cache_dir() / kind, kind)
 

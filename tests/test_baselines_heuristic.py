@@ -12,7 +12,12 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.methods import get_method, run_predict
 from degusta_learn.metrics import score_many
 from degusta_learn.scene import (
-    Dataset, Episode, Placement, make_episodes, read_predictions, split_participants,
+    Dataset,
+    Episode,
+    Placement,
+    make_episodes,
+    read_predictions,
+    split_participants,
 )
 from degusta_learn.synth import generate_dataset, naturalistic_with_styles, simulated_with_styles
 from degusta_learn.synth.oracle import predict_oracle

@@ -6,10 +6,10 @@ import sys
 import pytest
 from benchmark_support import load_benchmark
 
-from degusta_learn.prompting.aggregate import aggregate_votes, anchored_votes, combine
-from degusta_learn.prompting.answers import answer_items, format_answer
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Prediction, load_dataset, make_episodes, write_predictions
+from degusta_learn.task.aggregate import aggregate_votes, anchored_votes, combine
+from degusta_learn.task.answer_format import answer_items, format_answer
 
 bench = load_benchmark("choose_decoding")
 G = Grid(8, 8)

@@ -11,7 +11,7 @@ def test_only_the_shipped_base_writes_the_perception_figure(tmp_path, monkeypatc
     bench = load_benchmark("bench_perception")
     monkeypatch.chdir(tmp_path)
     assert bench.curve_path(str(BASE_DIR), "runs/x") == "docs/images/base_perception_curve.png"
-    assert bench.curve_path("checkpoints/tiny_vlm_base", "runs/x") == "runs/x/perception_curve.png"  # another folder
+    assert bench.curve_path("runs/tiny_vlm_base", "runs/x") == "runs/x/perception_curve.png"  # another folder
     assert bench.curve_path("/work/pilots/base_tr3", "runs/x") == "runs/x/perception_curve.png"
 
 

@@ -5,7 +5,7 @@ import math
 
 from benchmark_support import load_benchmark
 
-from degusta_learn.fileio import atomic_write_json, read_json
+from degusta_learn.files.jsonio import atomic_write_json, read_json
 
 
 def test_perception_results_are_written_without_nan(tmp_path):

@@ -2,8 +2,8 @@
 
 from benchmark_support import load_benchmark
 
-from degusta_learn.finetune.pretrain.base import BaseArchitecture
-from degusta_learn.finetune.pretrain.export import save_random_base
+from degusta_learn.pretrain.base import BaseArchitecture
+from degusta_learn.pretrain.export import save_random_base
 
 
 def test_the_cache_changes_no_loss_and_counts_an_epochs_distinct_pictures(small_dataset_dir, tmp_path, capsys):

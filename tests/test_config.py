@@ -65,7 +65,7 @@ def test_a_partial_section_keeps_the_kinds_defaults_for_the_keys_it_does_not_giv
 
 
 def test_a_partial_pretraining_mix_keeps_the_curriculums_short_prompts():
-    from degusta_learn.finetune.pretrain.train import PretrainConfig
+    from degusta_learn.pretrain.train import PretrainConfig
 
     cfg = load_config(PretrainConfig, None, ["data.curriculum_mix.lists=0", "optim.weight_decay=0.1"])
     mix = cfg.data.curriculum_mix
@@ -92,7 +92,7 @@ def test_errors_name_the_key(tmp_path, text, sets, message):
 def test_atomic_writes_have_normal_permissions_and_leave_nothing_on_error(tmp_path):
     import os
 
-    from degusta_learn.fileio import atomic_open, atomic_write_text
+    from degusta_learn.files.atomic import atomic_open, atomic_write_text
 
     atomic_write_text(tmp_path / "a.txt", "hi")
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~_umask()

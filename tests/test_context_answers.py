@@ -12,10 +12,11 @@ from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.config import FinetuneConfig
 from degusta_learn.finetune.data import LiftedExamples
-from degusta_learn.prompting import ImagePart, build_prompt, parse_answer
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import Renderer
 from degusta_learn.scene import make_episodes
+from degusta_learn.task.answers import parse_answer
+from degusta_learn.task.prompt import ImagePart, build_prompt
 from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 from degusta_learn.vlm.record import FINETUNE_FILE, FinetuneRecord, read_record
 

@@ -11,7 +11,7 @@ What is checked:
 - only rank 0 writes: every file-creating call of rank 1 under the run folder is recorded by the wrapper and
   must be none (checkpoints, config.yaml, logs, the adapter and degusta_finetune.json all come from rank 0);
 - the validation metrics logged by the DDP run (each rank scores its share of the val episodes; the rows
-  are gathered and each episode counted once, `trainer.gather_unique_rows`) equal a single-process
+  are gathered and each episode counted once, `training.gather_unique_rows`) equal a single-process
   validation of the same final weights within TOL (float noise of other batch paddings; in practice equal).
 
 Not claimed: that DDP *training* reproduces single-process training bit for bit (DistributedSampler orders
@@ -178,12 +178,12 @@ def test_finetune_ddp_stopped_resumed_and_equal_to_one_process(world):
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.vlm.generate import chat_format
     from degusta_learn.finetune.module import FinetuneData, FinetuneModule
     from degusta_learn.finetune.train import build_examples, prepare_model
-    from degusta_learn.prompting import answer_kind
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
+    from degusta_learn.task.answers import answer_kind
+    from degusta_learn.vlm.generate import chat_format
 
     runs = world["tmp"] / "runs"
     # the overrides of tests/test_finetune_train.py; 3 val episodes: the ranks' shares are padded (2 + 2)

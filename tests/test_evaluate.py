@@ -8,7 +8,14 @@ import pytest
 from degusta_learn.cli import main
 from degusta_learn.evaluate.summary import DEGENERATE_MARK, rank_methods
 from degusta_learn.metrics import SET_PENALTY
-from degusta_learn.scene import Placement, Prediction, load_dataset, make_episodes, write_episodes, write_predictions
+from degusta_learn.scene import (
+    Placement,
+    Prediction,
+    load_dataset,
+    make_episodes,
+    write_episodes,
+    write_predictions,
+)
 
 
 def _predictions(ds, episodes, method, shift=0.0, fail_every=0):

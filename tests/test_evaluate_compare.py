@@ -10,7 +10,14 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate import plots
 from degusta_learn.evaluate.compare import CompareConfig, MethodEntry, compare
 from degusta_learn.evaluate.summary import DEGENERATE_MARK
-from degusta_learn.scene import Placement, Prediction, load_dataset, make_episodes, write_episodes, write_predictions
+from degusta_learn.scene import (
+    Placement,
+    Prediction,
+    load_dataset,
+    make_episodes,
+    write_episodes,
+    write_predictions,
+)
 
 
 def _write(ds, episodes, method, path, shift=0.0):

@@ -95,7 +95,7 @@ def test_compare_all_ok_exits_0_and_every_method_failed_exits_2(world, capsys):
 
 def test_quickstart_with_a_failed_method_exits_3(tmp_path, capsys, monkeypatch):
     """quickstart ends in compare: its failed methods give the same exit 3 and one line naming them."""
-    from degusta_learn.evaluate import quickstart
+    from degusta_learn import quickstart
 
     report = tmp_path / "qs" / "report"
     result = {"value": Comparison(report, {"tiny_base_finetuned": "every one of its 12 predictions failed"}, 8)}

@@ -10,10 +10,10 @@ from finetune_support import GRID, dataset, examples, load
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.collate import IGNORE, Collator, supervised_text
-from degusta_learn.vlm.prompt_options import PromptOptions
-from degusta_learn.vlm.inputs import ChatFormat
 from degusta_learn.finetune.loss import lm_loss
-from degusta_learn.prompting import parse_answer
+from degusta_learn.task.answers import parse_answer
+from degusta_learn.vlm.inputs import ChatFormat
+from degusta_learn.vlm.prompt_options import PromptOptions
 
 END = {"idefics3": "<end_of_utterance>", "qwen2vl": "<|im_end|>"}
 LEAD = {"idefics3": " ", "qwen2vl": ""}  # what each chat template puts between "Assistant:" and the answer

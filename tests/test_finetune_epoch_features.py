@@ -9,7 +9,12 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from degusta_learn.finetune.config import DataConfig, FinetuneConfig, FinetuneOptimConfig, FinetuneTrainerConfig
+from degusta_learn.finetune.config import (
+    DataConfig,
+    FinetuneConfig,
+    FinetuneOptimConfig,
+    FinetuneTrainerConfig,
+)
 from degusta_learn.finetune.data import TrainSampler
 from degusta_learn.finetune.train import build_examples, train_sampler
 from degusta_learn.scene import participants_in

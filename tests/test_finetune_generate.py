@@ -10,8 +10,9 @@ import torch
 from finetune_support import GRID, dataset, examples, load
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.vlm.grammar import AnswerGrammar
-from degusta_learn.prompting import AnswerItem, AnswerParseError, format_answer, parse_answer
+from degusta_learn.task.answer_format import format_answer
+from degusta_learn.task.answers import AnswerItem, AnswerParseError, parse_answer
+from degusta_learn.task.grammar import AnswerGrammar
 
 
 def test_grammar_accepts_canonical_answers_and_rejects_invalid_ones():
@@ -79,9 +80,9 @@ def test_constrained_decoding_always_parses_with_random_weights(kind):
 def test_overfit_a_few_examples_until_the_answer_equals_the_target():
     """Full fine-tuning of the tiny Idefics3 on 2 examples; greedy generation then reproduces them."""
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.vlm.prompt_options import PromptOptions
-    from degusta_learn.vlm.generate import chat_format, generate_answers
     from degusta_learn.finetune.loss import lm_loss
+    from degusta_learn.vlm.generate import chat_format, generate_answers
+    from degusta_learn.vlm.prompt_options import PromptOptions
 
     torch.manual_seed(0)
     model, processor = load("idefics3")

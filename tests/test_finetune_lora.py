@@ -9,11 +9,11 @@ from finetune_support import examples, load, tiny_dir
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.collate import Collator
-from degusta_learn.vlm.inputs import ChatFormat
 from degusta_learn.finetune.lora import LoraConfig, apply_lora, merge_and_save, resolve_targets, save_adapter
-from degusta_learn.vlm.load import load_vlm
 from degusta_learn.finetune.loss import lm_loss
 from degusta_learn.finetune.module import enable_gradient_checkpointing
+from degusta_learn.vlm.inputs import ChatFormat
+from degusta_learn.vlm.load import load_vlm
 
 
 def _batch(kind, model, processor, n=2):

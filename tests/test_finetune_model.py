@@ -12,7 +12,7 @@ from PIL import Image
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.render.grid import Grid
-from degusta_learn.vlm.inputs import check_grid_resolution, ChatFormat, set_image_budget, tokens_per_image
+from degusta_learn.vlm.inputs import ChatFormat, check_grid_resolution, set_image_budget, tokens_per_image
 from degusta_learn.vlm.load import load_vlm, quiet_peft
 
 
@@ -77,14 +77,14 @@ def test_unloadable_model_id_fails_fast_naming_the_key(tmp_path):
 
 
 def test_a_relative_model_path_not_found_says_where_it_was_looked_for(tmp_path, monkeypatch):
-    # `checkpoints/tiny_vlm_base` run from another folder: one slash reads as a hub id; say the folder too, and
+    # `runs/tiny_vlm_base` run from another folder: one slash reads as a hub id; say the folder too, and
     # that the shipped base is named by its name alone
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(DegustaError, match=r"backend.model: 'checkpoints/tiny_vlm_base' is not in the local Hugging "
-                                           r"Face cache .*as a folder it would be .*checkpoints/tiny_vlm_base: a "
+    with pytest.raises(DegustaError, match=r"backend.model: 'runs/tiny_vlm_base' is not in the local Hugging "
+                                           r"Face cache .*as a folder it would be .*runs/tiny_vlm_base: a "
                                            r"relative path is read from the current directory \(the shipped model "
                                            r"'tiny_vlm_base' is named by its name alone"):
-        load_vlm("checkpoints/tiny_vlm_base", key="backend.model")
+        load_vlm("runs/tiny_vlm_base", key="backend.model")
     with pytest.raises(DegustaError, match=r"model folder ./tiny_vlm_base not found \(the shipped model "):
         load_vlm("./tiny_vlm_base")
 

@@ -25,12 +25,19 @@ from degusta_learn.scene import load_dataset, save_dataset, split_participants
 from degusta_learn.scene.dataset import dataset_identity
 from degusta_learn.vlm.prompt_options import PromptOptions
 from degusta_learn.vlm.record import (
-    BASE_FILE, FINETUNE_FILE, FINETUNE_VERSION, BaseRecord, FinetuneRecord, locate_record, read_record, write_record,
+    BASE_FILE,
+    FINETUNE_FILE,
+    FINETUNE_VERSION,
+    BaseRecord,
+    FinetuneRecord,
+    locate_record,
+    read_record,
+    write_record,
 )
 
 PROCESSOR = SimpleNamespace(image_processor=SimpleNamespace(size={"longest_edge": 64}))
 # What `write_meta` wrote before the record was versioned (format 1).
-OLD_META = {"base_model": "checkpoints/tiny/idefics3", "method": "mogma", "mode": "lora",
+OLD_META = {"base_model": "runs/tiny/idefics3", "method": "mogma", "mode": "lora",
             "grid": {"rows": 8, "cols": 8}, "prompt": {"include": ["objects", "context", "target"],
                                                        "compose": ["objects"]},
             "image_size": 64, "render_size": 224, "processor_size": {"longest_edge": 64}}

@@ -15,16 +15,17 @@ from safetensors.torch import load_file
 
 from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
+from degusta_learn.files.folders import write_folder
 from degusta_learn.finetune import module as fm
 from degusta_learn.finetune.config import FinetuneConfig
 from degusta_learn.finetune.export import MODEL_FOLDER, SELECTION_FILE
-from degusta_learn.outdir import write_folder
 from degusta_learn.finetune.field_scores import field_counts
 from degusta_learn.methods import run_train
-from degusta_learn.prompting.answers import AnswerItem, answer_items
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Placement, save_dataset
 from degusta_learn.scene.types import Arrangement
+from degusta_learn.task.answer_format import answer_items
+from degusta_learn.task.answers import AnswerItem
 
 CONFIGS = Path(__file__).parent.parent / "configs"
 GRID = Grid(8, 8)
@@ -210,7 +211,7 @@ class _Toy(L.LightningModule):
 def test_last_ckpt_follows_every_validation_even_without_improvement(tmp_path):
     from torch.utils.data import TensorDataset
 
-    from degusta_learn.trainer import TrainerConfig, fit
+    from degusta_learn.training import TrainerConfig, fit
 
     x = torch.randn(32, 2, generator=torch.Generator().manual_seed(0))
     data = L.LightningDataModule.from_datasets(

@@ -13,9 +13,9 @@ from degusta_learn.config import load_config
 from degusta_learn.finetune import module as fm
 from degusta_learn.finetune.config import DataConfig, FinetuneConfig
 from degusta_learn.metrics import score_prediction
-from degusta_learn.prompting.prompt import Completion
+from degusta_learn.task.grammar import AnswerGrammar
+from degusta_learn.task.prompt import Completion
 from degusta_learn.vlm.generate import generate_answers, generate_batch
-from degusta_learn.vlm.grammar import AnswerGrammar
 
 CONFIGS = Path(__file__).parent.parent / "configs"
 
@@ -93,7 +93,7 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
     ds = dataset()
     ex = examples(context=2, split="val")[1]
     gt = ds.arrangement(ex.participant, ex.target)
-    from degusta_learn.prompting.answers import answer_items, format_answer
+    from degusta_learn.task.answer_format import answer_items, format_answer
 
     truth = answer_items(list(gt.placements), ds.catalog, "grid", GRID)
     texts = [format_answer(truth, "grid"), format_answer(truth[:-1], "grid"), "not an answer",

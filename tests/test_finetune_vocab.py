@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import functools
 
-from degusta_learn.finetune.pretrain.base import SPECIAL
-from degusta_learn.finetune.vocab import answer_literals, domain_tokenizer
-from degusta_learn.prompting import answer_items, format_answer
+from degusta_learn.pretrain.base import SPECIAL
+from degusta_learn.pretrain.vocab import answer_literals, domain_tokenizer
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Placement, default_catalog
+from degusta_learn.task.answer_format import answer_items, format_answer
 
 
 @functools.cache

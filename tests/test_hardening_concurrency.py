@@ -1,4 +1,4 @@
-"""One writer at a time (issue "Hardening, second pass", item 3): degusta_learn/locks.py and where it is taken.
+"""One writer at a time (issue "Hardening, second pass", item 3): degusta_learn/files/locks.py and where it is taken.
 
 A second process writing an output folder, a dataset folder or a run folder while a first one writes it is
 refused in one line naming the folder and the first (pid, command, start time), and the first's output is
@@ -24,13 +24,14 @@ import yaml
 sys.path.insert(0, str(Path(__file__).parent))
 from conftest import make_small_dataset  # noqa: E402
 
-from degusta_learn import cli, locks  # noqa: E402
-from degusta_learn.locks import LockHeld, hold, is_lock_file, lock_file  # noqa: E402
+from degusta_learn import cli
+from degusta_learn.files import locks  # noqa: E402
+from degusta_learn.files.locks import LockHeld, hold, is_lock_file, lock_file  # noqa: E402
 from degusta_learn.scene import load_dataset, save_dataset  # noqa: E402
 
 HOLD = """
 import sys, time, pathlib
-from degusta_learn.locks import hold
+from degusta_learn.files.locks import hold
 path, ready, go = sys.argv[1:4]
 with hold(path, "test folder"):
     pathlib.Path(ready).write_text("held")

@@ -16,12 +16,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from degusta_learn import cli, fileio
+from degusta_learn import cli
 from degusta_learn.baselines.transfer import place_on, table_distance
 from degusta_learn.errors import DegustaError
+from degusta_learn.files import jsonio as fileio
 from degusta_learn.render.sprites import open_picture, sprite
 from degusta_learn.scene import (
-    Catalog, CatalogObject, Table, default_catalog, default_tables, load_dataset, validate_dataset,
+    Catalog,
+    CatalogObject,
+    Table,
+    default_catalog,
+    default_tables,
+    load_dataset,
+    validate_dataset,
 )
 from degusta_learn.scene.validate import MAX_IMAGE_PIXELS
 
@@ -139,7 +146,7 @@ def test_huge_files_and_lines_are_refused(small_dataset_dir, capsys, monkeypatch
 
 def test_the_dataset_folder_itself(tmp_path, capsys):
     os.symlink(tmp_path / "loop", tmp_path / "loop")
-    assert_refused(tmp_path / "loop", capsys, "loop: goes through a symbolic-link loop")  # fileio.check_path
+    assert_refused(tmp_path / "loop", capsys, "loop: goes through a symbolic-link loop")  # files.paths.check_path
     (tmp_path / "file").write_text("x")
     assert_refused(tmp_path / "file", capsys, "file: not a dataset folder")
     assert_refused(tmp_path / "none", capsys, "none: dataset folder not found")

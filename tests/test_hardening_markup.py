@@ -32,8 +32,20 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate import compare as compare_module
 from degusta_learn.evaluate.compare import CompareConfig, MethodEntry, compare
 from degusta_learn.scene import (
-    Arrangement, Dataset, Placement, Prediction, Rating, default_catalog, default_tables, load_dataset, make_episodes,
-    read_episodes, read_predictions, save_dataset, write_episodes, write_predictions,
+    Arrangement,
+    Dataset,
+    Placement,
+    Prediction,
+    Rating,
+    default_catalog,
+    default_tables,
+    load_dataset,
+    make_episodes,
+    read_episodes,
+    read_predictions,
+    save_dataset,
+    write_episodes,
+    write_predictions,
 )
 
 HOSTILE = [

@@ -38,17 +38,25 @@ import pytest
 import yaml
 from conftest import make_small_dataset
 from loopback import (
-    Loopback, chat_completion, compressed, endless_chunks, gzip_bomb, json_reply, stall, trickle_body,
-    trickle_headers, trickle_status,
+    Loopback,
+    chat_completion,
+    compressed,
+    endless_chunks,
+    gzip_bomb,
+    json_reply,
+    stall,
+    trickle_body,
+    trickle_headers,
+    trickle_status,
 )
 
 from degusta_learn.cli import main as cli_main
-from degusta_learn.prompting.answers import MAX_CHARS
 from degusta_learn.prompting.backends.base import BackendError, backend_config, make_backend
 from degusta_learn.prompting.backends.transport import MAX_REPLY_BYTES, environment_proxies, guarded_client
-from degusta_learn.prompting.prompt import Prompt
 from degusta_learn.prompting.runner import LINE_BUDGET, cut_answer, fit_line
 from degusta_learn.scene import Prediction, default_catalog, make_episodes, read_predictions, save_dataset
+from degusta_learn.task.answers import MAX_CHARS
+from degusta_learn.task.prompt import Prompt
 
 CAT = default_catalog()
 GOOD = ("[{'type': 'plate', 'id': 75, 'position': ['D4', 'D5'], 'cardinal_direction': 'N'}, "
@@ -326,7 +334,6 @@ def test_a_prediction_line_always_fits_what_read_predictions_reads(tmp_path):
 def test_an_empty_completion_is_a_server_fault_retried_with_the_backoff(tmp_path, dataset_dir, capsys, monkeypatch,
                                                                         backend, shape):
     from degusta_learn.prompting import runner
-
     waits = []
     monkeypatch.setattr(runner.ZeroShotRun, "sleep", lambda self, s: waits.append(s))
     srv = Server(backend)

@@ -12,10 +12,10 @@ import pathlib
 
 import pytest
 
-from degusta_learn import outdir
 from degusta_learn.cli import main
 from degusta_learn.evaluate import plots as plots_module
 from degusta_learn.evaluate import report as report_module
+from degusta_learn.files import folders as outdir
 from degusta_learn.scene import Prediction, load_dataset, make_episodes, write_episodes, write_predictions
 from degusta_learn.synth import generate as generate_module
 

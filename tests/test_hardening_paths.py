@@ -5,8 +5,8 @@ file.
 
 Every case runs the CLI (`degusta_learn.cli.main`) and asserts: exit status 2, one line
 `degusta: error: ...` naming the path or key, the endangered file byte-identical afterwards, and no
-temporary file left behind. The guards are `fileio.atomic_open`, `fileio.check_output_file` /
-`refuse_overwriting_inputs` and `outdir.refuse_replacing_inputs`, shared by every command that writes.
+temporary file left behind. The guards are `files.atomic.atomic_open`, `files.guard.check_output_file` /
+`refuse_overwriting_inputs` and `files.guard.refuse_replacing_inputs`, shared by every command that writes.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Hardening, second pass: user paths that made `pathlib` raise, non-UTF-8 names in records, YAML 1.1 numbers,
 `~` in path keys, and quickstart writing into a user's folder.
 
-1. Paths (`fileio.check_path`, the one check of every user path: CLI path flags, config path keys, dataset
+1. Paths (`files.paths.check_path`, the one check of every user path: CLI path flags, config path keys, dataset
    folders, readers and writers): a NUL byte, a 300-byte name, a 5,000-byte path, a path through a file, a broken
    symbolic link, an unknown `~user` are one line, exit 2, naming the flag or key and the path; nothing written.
 2. Encodings: a non-UTF-8 path is refused up front (the toolkit writes paths into UTF-8 records it must read
@@ -32,17 +32,10 @@ from conftest import make_small_dataset
 from degusta_learn import cli
 from degusta_learn.config import PATH_KEYS, dump_yaml, load_config, path_key, read_yaml
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import (
-    atomic_write_json,
-    atomic_write_jsonl,
-    check_output_file,
-    check_path,
-    path_problem,
-    read_json,
-    read_jsonl,
-    stat_tree,
-    user_path,
-)
+from degusta_learn.files.guard import check_output_file
+from degusta_learn.files.identity import stat_tree
+from degusta_learn.files.jsonio import atomic_write_json, atomic_write_jsonl, read_json, read_jsonl
+from degusta_learn.files.paths import check_path, path_problem, user_path
 from degusta_learn.scene import load_dataset, save_dataset
 
 BAD = os.fsdecode(b"\xff\xfe")  # a non-UTF-8 name as Python has it from argv or os.listdir (surrogate escapes)
@@ -175,7 +168,7 @@ def test_train_config_path_keys_are_checked_when_the_config_loads(key, world, ca
 
 def test_library_entry_points_say_one_line_not_oserror(world, tmp_path):
     from degusta_learn.evaluate.compare import CompareConfig
-    from degusta_learn.outdir import OutputKind, write_folder
+    from degusta_learn.files.folders import OutputKind, write_folder
 
     kind = OutputKind("test output", ("a.txt",))
     calls = (load_dataset, read_json, lambda p: list(read_jsonl(p)), lambda p: atomic_write_json(p, {}),

@@ -19,12 +19,12 @@ from conftest import make_small_dataset
 from loopback import Loopback, chat_completion, json_reply
 
 from degusta_learn.cli import main as cli_main
-from degusta_learn.prompting.answers import AnswerParseError, parse_answer, read_answer
 from degusta_learn.prompting.backends.anthropic import AnthropicBackend
 from degusta_learn.prompting.backends.base import BACKENDS, Completion, redact
 from degusta_learn.prompting.cache import ResponseCache
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import default_catalog, read_predictions, save_dataset
+from degusta_learn.task.answers import AnswerParseError, parse_answer, read_answer
 
 CAT = default_catalog()
 G = Grid(8, 8)
@@ -308,7 +308,6 @@ def test_a_permanent_refusal_is_a_counted_failure_not_a_server_fault(tmp_path, d
 
 def test_retry_waits_are_bounded_and_injectable(tmp_path, dataset_dir, server, monkeypatch, capsys):
     from degusta_learn.prompting import runner
-
     waits = []
     monkeypatch.setattr(runner.ZeroShotRun, "sleep", lambda self, s: waits.append(s))
     server.fail(503, times=3)
@@ -398,7 +397,6 @@ def test_a_path_that_is_not_our_cache_is_refused_untouched(tmp_path, dataset_dir
 def test_an_answer_is_committed_before_it_is_parsed(tmp_path, dataset_dir, server, monkeypatch, capsys):
     """A crash (here Ctrl-C) right after the answer arrives, before parsing: the re-run does not pay again."""
     from degusta_learn.prompting import runner
-
     real = runner.read_answer
     calls = {"n": 0}
 

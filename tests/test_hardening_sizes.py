@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import MAX_JSON_BYTES
+from degusta_learn.files.jsonio import MAX_JSON_BYTES
 from degusta_learn.shipped import shipped_model
 
 BASE = shipped_model("tiny_vlm_base")
@@ -54,7 +54,7 @@ def _edit(folder: Path, name: str, dotted: str, value) -> None:
 
 def _refused_fast(fn, *words: str, reader_buffer: int = 0) -> str:
     """`fn()` raises a one-line DegustaError naming every word, within FAST_S and without allocating 50 MB (beyond
-    `reader_buffer`: the buffer `fileio.read_json` reserves for any file, its MAX_JSON_BYTES)."""
+    `reader_buffer`: the buffer `files.jsonio.read_json` reserves for any file, its MAX_JSON_BYTES)."""
     tracemalloc.start()
     t = time.perf_counter()
     try:
@@ -477,8 +477,8 @@ def test_bounded_render_matches_transformers(template):
     render_jinja_template with the tokenizer's special tokens)."""
     from transformers.utils.chat_template_utils import render_jinja_template
 
-    from degusta_learn.vlm import tiny
     from degusta_learn.vlm.chat_template import render_chat
+    from degusta_learn.vlm.random_models import tiny
 
     text = {"tiny_idefics3": tiny.IDEFICS3_CHAT_TEMPLATE, "tiny_qwen2vl": tiny.QWEN2VL_CHAT_TEMPLATE,
             "shipped_base": (BASE / "chat_template.jinja").read_text(), "kitchen_sink": KITCHEN_SINK}[template]

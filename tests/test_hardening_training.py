@@ -23,7 +23,7 @@ from conftest import make_small_dataset  # noqa: E402
 from degusta_learn import cli  # noqa: E402
 from degusta_learn.errors import DegustaError  # noqa: E402
 from degusta_learn.scene import save_dataset  # noqa: E402
-from degusta_learn.trainer import TMP_PREFIX, TrainerConfig, _atomic_checkpoint_io, build_trainer, fit  # noqa: E402
+from degusta_learn.training import TMP_PREFIX, TrainerConfig, atomic_checkpoint_io, build_trainer, fit  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py
 CONFIGS = Path(__file__).parent.parent / "configs"
@@ -239,7 +239,7 @@ def test_vlm_trainers_same_seed_same_weights_after_one_step(tmp_path, kind):
 
 # ---------------------------------------------------------------- checkpoints: atomic saves, corrupt last.ckpt
 def test_checkpoints_are_saved_atomically_in_the_run_folder(tmp_path):
-    io = _atomic_checkpoint_io()
+    io = atomic_checkpoint_io()
     trainer = build_trainer(TrainerConfig(run_dir=str(tmp_path), accelerator="cpu", devices=1, progress_bar=False),
                             tmp_path / "run")
     assert type(trainer.strategy.checkpoint_io).__name__ == "AtomicCheckpointIO"

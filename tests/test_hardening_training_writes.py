@@ -34,7 +34,7 @@ from conftest import make_small_dataset  # noqa: E402
 from degusta_learn import cli  # noqa: E402
 from degusta_learn.errors import Terminated  # noqa: E402
 from degusta_learn.scene import save_dataset  # noqa: E402
-from degusta_learn.trainer import TMP_PREFIX, validation_curve  # noqa: E402
+from degusta_learn.training import TMP_PREFIX, validation_curve  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 CONFIGS = Path(__file__).parent.parent / "configs"
@@ -247,7 +247,7 @@ def test_a_real_file_size_limit_is_one_line_and_keeps_the_last_checkpoint(tmp_pa
 
 
 def test_a_failed_export_write_is_one_line(tmp_path, monkeypatch, capfd):
-    """A VLM trainer's export (safetensors raises its own SafetensorError) through outdir.write_folder."""
+    """A VLM trainer's export (safetensors raises its own SafetensorError) through files.folders.write_folder."""
     import safetensors.torch
     from safetensors import SafetensorError
     from test_hardening_training import _vlm_overrides
@@ -358,7 +358,7 @@ def test_last_ckpt_follows_every_validation_or_else_every_epoch(tmp_path, valida
     from lightning.pytorch.callbacks import Callback
     from test_trainer import Toy, ToyData
 
-    from degusta_learn.trainer import TrainerConfig, fit
+    from degusta_learn.training import TrainerConfig, fit
 
     seen = {}
 

@@ -7,7 +7,13 @@ import pytest
 import torch
 
 from degusta_learn.baselines.learned.data import (
-    DataConfig, TrainEpisodes, ValEpisodes, mirror, relabel, shuffle_mapping, swap_table,
+    DataConfig,
+    TrainEpisodes,
+    ValEpisodes,
+    mirror,
+    relabel,
+    shuffle_mapping,
+    swap_table,
 )
 from degusta_learn.baselines.learned.features import Vocab, onto_surface
 from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel

@@ -9,7 +9,12 @@ from degusta_learn.config import from_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import run_predict, run_train
 from degusta_learn.scene import (
-    CatalogObject, Dataset, load_dataset, make_episodes, read_predictions, save_dataset,
+    CatalogObject,
+    Dataset,
+    load_dataset,
+    make_episodes,
+    read_predictions,
+    save_dataset,
 )
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py

@@ -8,7 +8,12 @@ import pytest
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import (
-    SET_PENALTY, EpisodeScore, few_matched_fraction, kabsch_rmsd, score_many, score_prediction,
+    SET_PENALTY,
+    EpisodeScore,
+    few_matched_fraction,
+    kabsch_rmsd,
+    score_many,
+    score_prediction,
 )
 from degusta_learn.metrics.matching import hamming
 from degusta_learn.scene import Arrangement, Placement, Prediction, default_catalog

@@ -1,6 +1,6 @@
 """The real-model hf predict configs (SmolVLM-256M/500M, Qwen2-VL-2B; zero-shot and fine-tuned) are checked
 offline: no weights here, so each config is loaded and its image budget is applied to the model's full-size
-replica processor (vlm/replicas.py; SmolVLM-256M's real processor files too, where they are at hand), whose
+replica processor (vlm/random_models/replicas.py; SmolVLM-256M's real processor files too, where they are at hand), whose
 per-image token count must resolve the grid (`vlm.inputs.check_grid_resolution`)."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from degusta_learn.errors import DegustaError  # noqa: E402
 from degusta_learn.methods import build_config, get_method  # noqa: E402
 from degusta_learn.render.grid import Grid  # noqa: E402
 from degusta_learn.vlm.inputs import ChatFormat, check_grid_resolution, set_image_budget, tokens_per_image  # noqa: E402
-from degusta_learn.vlm.replicas import REPLICAS, build_replica  # noqa: E402
+from degusta_learn.vlm.random_models.replicas import REPLICAS, build_replica  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 REFERENCE = Path(__file__).resolve().parent.parent.parent / "shared" / "reference-models" / "SmolVLM-256M-Instruct"
@@ -68,7 +68,7 @@ def test_real_model_predict_config_resolves_the_grid(name, kind):
 def test_finetuned_config_matches_its_training_run(name):
     _, cfg = build_config(CONFIGS / f"predict_hf_{name}_finetuned.yaml", [], "method", get_method)
     train = read_yaml(CONFIGS / f"finetune_{name}.yaml")
-    run = Path(train["trainer"].get("run_dir", "checkpoints")) / train["trainer"]["run_name"]
+    run = Path(train["trainer"].get("run_dir", "runs")) / train["trainer"]["run_name"]
     assert Path(cfg.backend.adapter) == run / "best_adapter"
     assert cfg.backend.model == train["model"]["name"] and cfg.method == train["method"]
     assert cfg.seed == train["seed"] and cfg.image_size == train["data"]["render_size"]

@@ -1,23 +1,23 @@
-"""Attention supervision of retrieval (`finetune/pretrain/retrieval.py`): the targets say where each answer's
+"""Attention supervision of retrieval (`pretrain/retrieval.py`): the targets say where each answer's
 object is among the image tokens, and the loss is what the model's own attention weights give."""
 
 from __future__ import annotations
 
 import pytest
 import torch
+from test_pretrain_train import CONFIG, _overrides
 
 from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.collate import Collator
-from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
-from degusta_learn.finetune.pretrain.retrieval import RetrievalLoss, RetrievalTargets
-from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
-from degusta_learn.finetune.pretrain.train import PretrainConfig
 from degusta_learn.methods import run_train
+from degusta_learn.pretrain.base import BaseArchitecture, build_base
+from degusta_learn.pretrain.retrieval import RetrievalLoss, RetrievalTargets
+from degusta_learn.pretrain.tasks import PerceptionExamples, TaskMix
+from degusta_learn.pretrain.train import PretrainConfig
 from degusta_learn.render.grid import DIRECTIONS, Grid
 from degusta_learn.scene import default_catalog, default_tables
 from degusta_learn.vlm.generate import chat_format
-from test_pretrain_train import CONFIG, _overrides
 
 GRID = Grid(8, 8)
 

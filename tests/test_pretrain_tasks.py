@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.pretrain.scenes import random_scene
-from degusta_learn.finetune.pretrain.score import score_answer, summarize
-from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
-from degusta_learn.prompting import ImagePart, parse_answer
+from degusta_learn.pretrain.scenes import random_scene
+from degusta_learn.pretrain.score import score_answer, summarize
+from degusta_learn.pretrain.tasks import PerceptionExamples, TaskMix
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import gomo_layout
 from degusta_learn.scene import default_catalog, default_tables
 from degusta_learn.synth.geometry import footprint_points, inside, max_overlap, sizes_of
+from degusta_learn.task.answers import parse_answer
+from degusta_learn.task.prompt import ImagePart
 
 CATALOG = default_catalog()
 TABLES = {t.id: t for t in default_tables()}
@@ -52,7 +53,7 @@ def test_examples_are_deterministic_and_come_in_blocks_of_one_shape():
 
 
 def test_a_curriculum_draws_its_first_examples_from_its_own_mix():
-    from degusta_learn.finetune.pretrain.train import PretrainData
+    from degusta_learn.pretrain.train import PretrainData
 
     short = PretrainData().curriculum_mix  # the shipped default: one scene, no sheets, no gomo
     long = TaskMix(lists=0.5, describe=0.0, gomo=0.0, locate=0.5, scenes=[0, 0, 0, 1], objects_sheet=1.0,
@@ -134,7 +135,7 @@ def test_locate_answers_the_named_objects_of_the_named_scene_in_the_order_asked(
 
 
 def test_transcribe_copies_the_named_scenes_written_list_as_a_preference_prompt_writes_it():
-    from degusta_learn.prompting import Prompt
+    from degusta_learn.task.prompt import Prompt
     from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
     ds = examples(n=24, block=1, mix=TaskMix(lists=0, describe=0, gomo=0, transcribe=1, scenes=[1, 1, 1, 1]))

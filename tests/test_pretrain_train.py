@@ -10,14 +10,14 @@ import torch
 
 from degusta_learn.config import load_config
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
-from degusta_learn.finetune.pretrain.dense import DenseHead, DenseLabels, OracleTeacher, OracleTokens, projector_of
-from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
-from degusta_learn.finetune.pretrain.train import PretrainConfig
 from degusta_learn.methods import run_train
+from degusta_learn.pretrain.base import BaseArchitecture, build_base
+from degusta_learn.pretrain.dense import DenseHead, DenseLabels, OracleTeacher, OracleTokens, projector_of
+from degusta_learn.pretrain.tasks import PerceptionExamples, TaskMix
+from degusta_learn.pretrain.train import PretrainConfig
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import default_catalog, default_tables
-from degusta_learn.trainer import x86_with_avx2
+from degusta_learn.training import x86_with_avx2
 
 CONFIG = Path(__file__).parent.parent / "configs" / "pretrain_tiny_vlm_cpu.yaml"
 TINY = ["model.vision_channels=[8,8,16,16]", "model.vision_stem=8", "model.text_hidden=32", "model.text_layers=1",
@@ -34,7 +34,7 @@ def _overrides(tmp_path: Path, steps: int) -> list[str]:
 def test_shipped_pretrain_config_loads_and_is_checked():
     cfg = load_config(PretrainConfig, CONFIG)
     assert cfg.kind == "pretrain" and cfg.model.tokens_per_image == 64
-    # the shipped recipe (docs/tiny_base.md, point 19): the readout on, the pull off, the last weights exported
+    # the shipped recipe (experiments/tiny_base_log.md, point 19): the readout on, the pull off, the last weights exported
     assert cfg.data.readout_weight > 0 and cfg.data.teacher_weight == 0 and cfg.trainer.monitor is None
     with pytest.raises(DegustaError, match="model.image_size"):
         load_config(PretrainConfig, CONFIG, ["model.image_size=250"])
@@ -104,7 +104,7 @@ def test_oracle_teacher_feeds_the_decoder_perfect_image_tokens_then_lets_go():
 
 
 def test_tied_readout_names_a_cells_content_through_the_decoders_output_layer():
-    from degusta_learn.finetune.pretrain.dense import TiedReadout
+    from degusta_learn.pretrain.dense import TiedReadout
 
     model, processor = build_base(BaseArchitecture(  # independent random embeddings: sums of four in 32 dimensions
         vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=1, text_heads=2, text_kv_heads=1,
@@ -132,7 +132,7 @@ def test_tied_readout_names_a_cells_content_through_the_decoders_output_layer():
 
 
 def test_class_init_gives_rare_answer_tokens_a_shared_direction():
-    from degusta_learn.finetune.pretrain.base import init_token_classes, token_classes
+    from degusta_learn.pretrain.base import init_token_classes, token_classes
 
     def mean_cosine(model, ids):
         rows = torch.nn.functional.normalize(model.get_input_embeddings().weight[ids], dim=1)
@@ -182,7 +182,7 @@ def test_teacher_needs_one_token_per_cell():
 def test_pretrain_exports_a_plain_hf_folder_and_resumes(tmp_path, monkeypatch):
     from transformers import AutoModelForImageTextToText, AutoProcessor
 
-    from degusta_learn.trainer import effective_precision
+    from degusta_learn.training import effective_precision
     from degusta_learn.vlm.load import load_vlm
 
     seen: list[int] = []  # the training examples drawn, in order (validation uses another seed)
@@ -237,7 +237,7 @@ def test_the_recipe_command_rebuilds_the_config_it_describes():
     import shlex
 
     from degusta_learn.config import to_dict
-    from degusta_learn.finetune.pretrain.export import COMMAND, ran_as, recipe_command
+    from degusta_learn.pretrain.export import COMMAND, ran_as, recipe_command
 
     shipped = load_config(PretrainConfig, CONFIG)
     assert shipped.trainer.cpu_kernels == "avx2"  # the kernels its passing builds computed with (point 46)
@@ -347,7 +347,7 @@ def test_vision_stage_trains_only_the_tower_then_the_decoder_starts_its_own_sche
 
 
 def test_while_the_teacher_holds_the_pull_and_the_readout_train_the_projectors_own_tokens(monkeypatch):
-    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.pretrain.module import PerceptionModule
 
     model, processor = _tiny_base()
     catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
@@ -418,7 +418,7 @@ def test_a_vision_stage_that_cannot_work_is_refused_before_anything_is_written(t
 
 @pytest.mark.parametrize("tower_steps", [0, 3])
 def test_after_a_vision_stage_the_pull_trains_the_projector_not_the_tower(tower_steps):
-    from degusta_learn.finetune.pretrain.module import PerceptionModule
+    from degusta_learn.pretrain.module import PerceptionModule
 
     model, processor = _tiny_base()
     catalog, tables = default_catalog(), {t.id: t for t in default_tables()}
@@ -437,7 +437,7 @@ def test_after_a_vision_stage_the_pull_trains_the_projector_not_the_tower(tower_
 
 
 def test_channels_last_is_the_same_tower_in_a_faster_layout_and_exports_the_usual_one():
-    from degusta_learn.finetune.pretrain.train import prepare_model
+    from degusta_learn.pretrain.train import prepare_model
 
     # 16 channels at least: narrower strided 1x1 convolutions stay in the usual layout (next test)
     cfg = load_config(PretrainConfig, CONFIG, TINY + ["model.vision_channels=[16,16,32,32]"])
@@ -462,8 +462,8 @@ def test_channels_last_is_the_same_tower_in_a_faster_layout_and_exports_the_usua
 def test_a_tower_whose_strided_1x1_convolution_oneDNN_mishandles_keeps_the_usual_layout(capsys):
     """oneDNN (torch 2.14.1, AVX-512) aborts the backward pass of a strided 1x1 convolution over 8 channels in
     channels-last: such a tower trains in the usual layout, with a note; the recipe's tower is not one."""
-    from degusta_learn.finetune.pretrain.base import BaseArchitecture
-    from degusta_learn.finetune.pretrain.train import channels_last_is_safe, prepare_model
+    from degusta_learn.pretrain.base import BaseArchitecture
+    from degusta_learn.pretrain.train import channels_last_is_safe, prepare_model
 
     cfg = load_config(PretrainConfig, CONFIG, TINY)  # vision_channels [8, 8, 16, 16]
     model, _ = build_base(cfg.model, seed=0)
@@ -480,12 +480,12 @@ def test_a_tower_whose_strided_1x1_convolution_oneDNN_mishandles_keeps_the_usual
                     reason="the recipe's cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")
 def test_degusta_train_runs_the_recipe_on_avx2_kernels_and_the_export_says_so(tmp_path):
     """The kernels are chosen at torch's first CPU operation: `degusta train` must ask for the recipe's before any,
-    on every CPU (the AVX-512 builds of the recipe failed the route's bars, docs/tiny_base.md point 46)."""
+    on every CPU (the AVX-512 builds of the recipe failed the route's bars, experiments/tiny_base_log.md point 46)."""
     import os
     import subprocess
     import sys
 
-    from degusta_learn.trainer import AVX2_KERNELS
+    from degusta_learn.training import AVX2_KERNELS
 
     env = {k: v for k, v in os.environ.items() if k not in AVX2_KERNELS}
     done = subprocess.run([sys.executable, "-m", "degusta_learn.cli", "train", "--config", str(CONFIG),
@@ -504,8 +504,8 @@ def test_degusta_train_runs_the_recipe_on_avx2_kernels_and_the_export_says_so(tm
     ({"device": "gpu", "precision": "bf16-mixed"}, "on a GPU in bf16-mixed"),
 ])
 def test_the_card_says_where_and_in_which_precision_the_base_trained(record, words):
-    from degusta_learn.finetune.pretrain.export import _device, _where
-    from degusta_learn.trainer import TrainerConfig
+    from degusta_learn.pretrain.export import _device, _where
+    from degusta_learn.training import TrainerConfig
 
     assert _where(record) == words
     assert _device(TrainerConfig(accelerator="gpu")) == "gpu" and _device(TrainerConfig(accelerator="cpu")) == "cpu"

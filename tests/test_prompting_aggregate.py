@@ -7,9 +7,9 @@ import math
 import pytest
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.aggregate import aggregate, aggregate_votes, combine
-from degusta_learn.prompting.answers import AnswerItem
 from degusta_learn.render.grid import Grid
+from degusta_learn.task.aggregate import aggregate, aggregate_votes, combine
+from degusta_learn.task.answers import AnswerItem
 
 G = Grid(8, 8)
 

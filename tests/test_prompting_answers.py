@@ -6,11 +6,10 @@ import ast
 
 import pytest
 
-from degusta_learn.prompting.answers import (
-    AnswerItem, AnswerParseError, answer_items, answer_kind, format_answer, parse_answer,
-)
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Placement, default_catalog
+from degusta_learn.task.answer_format import answer_items, format_answer
+from degusta_learn.task.answers import AnswerItem, AnswerParseError, answer_kind, parse_answer
 
 CAT = default_catalog()
 G = Grid(8, 8)

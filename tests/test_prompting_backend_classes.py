@@ -15,12 +15,19 @@ from degusta_learn.cli import main as cli_main
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import build_config, get_method, run_predict
 from degusta_learn.prompting.backends.base import (
-    BACKENDS, Backend, BackendConfig, Completion, api_key, backend_class, backend_config, redact,
+    BACKENDS,
+    Backend,
+    BackendConfig,
+    Completion,
+    api_key,
+    backend_class,
+    backend_config,
+    redact,
 )
 from degusta_learn.prompting.cache import sample_keys
-from degusta_learn.prompting.prompt import Prompt
 from degusta_learn.scene import read_predictions, save_dataset
 from degusta_learn.shipped import shipped_config, shipped_names
+from degusta_learn.task.prompt import Prompt
 
 GOOD = "[{'type': 'plate', 'id': 75, 'position': ['D4'], 'cardinal_direction': 'N'}]"
 

@@ -13,7 +13,12 @@ from degusta_learn.config import from_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import get_method, run_predict
 from degusta_learn.prompting.backends.base import (
-    BACKENDS, BackendConfig, backend_class, backend_config, make_backend, redact,
+    BACKENDS,
+    BackendConfig,
+    backend_class,
+    backend_config,
+    make_backend,
+    redact,
 )
 from degusta_learn.prompting.costs import Ledger, price
 from degusta_learn.render.grid import Grid

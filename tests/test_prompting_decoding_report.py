@@ -11,9 +11,9 @@ from finetune_support import GRID, dataset, tiny_dir
 from degusta_learn.evaluate.report import answer_table
 from degusta_learn.evaluate.scoring import score_predictions
 from degusta_learn.evaluate.summary import GRAMMAR_MARK, label, summarize
-from degusta_learn.prompting.aggregate import decoding_diagnostics, failure_summary
-from degusta_learn.prompting.prompt import Completion
 from degusta_learn.scene import Prediction, make_episodes, read_predictions, save_dataset, write_episodes
+from degusta_learn.task.aggregate import decoding_diagnostics, failure_summary
+from degusta_learn.task.prompt import Completion
 
 CONFIGS = Path(__file__).parent.parent / "configs"
 GOOD = "[{'type': 'cup', 'id': 3, 'position': ['A1'], 'cardinal_direction': 'N'}]"

@@ -9,10 +9,10 @@ from conftest import make_small_dataset
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.cache import prompt_digest
-from degusta_learn.prompting.prompt import ImagePart, build_prompt
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import Renderer
 from degusta_learn.scene import make_episodes
+from degusta_learn.task.prompt import ImagePart, build_prompt
 
 DS = make_small_dataset(n_participants=3, n_trials=5)
 R = Renderer.for_dataset(DS, size=64)

@@ -30,13 +30,12 @@ from loopback import Loopback, chat_completion, json_reply
 from degusta_learn.cli import main as cli_main
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import run_predict
-from degusta_learn.prompting.answers import (
-    STRUCTURED_KEY, STRUCTURED_NAME, answer_items, answer_schema, format_answer_json, read_answer,
-)
 from degusta_learn.prompting.backends.base import BackendConfig, backend_config
 from degusta_learn.prompting.backends.gemini import gemini_schema
 from degusta_learn.render.grid import DIRECTIONS, Grid
 from degusta_learn.scene import default_catalog, read_predictions, save_dataset
+from degusta_learn.task.answer_format import answer_items, answer_schema, format_answer_json
+from degusta_learn.task.answers import STRUCTURED_KEY, STRUCTURED_NAME, read_answer
 
 CAT = default_catalog()
 G = Grid(8, 8)
@@ -296,7 +295,7 @@ def test_hf_and_unknown_paths_are_one_line_errors():
 
 def test_anthropic_forces_the_answer_tool(monkeypatch):
     from degusta_learn.prompting.backends.anthropic import AnthropicBackend
-    from degusta_learn.prompting.prompt import Prompt
+    from degusta_learn.task.prompt import Prompt
 
     calls = []
     value = {"objects": [{"type": "plate", "id": 75, "position": ["D4"], "cardinal_direction": "N"}]}

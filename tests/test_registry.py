@@ -5,7 +5,15 @@ from pathlib import Path
 import pytest
 
 from degusta_learn.config import apply_overrides, from_dict, read_yaml
-from degusta_learn.methods import METHODS, TRAINERS, MethodSpec, PredictConfig, TrainerSpec, get_method, get_trainer
+from degusta_learn.methods import (
+    METHODS,
+    TRAINERS,
+    MethodSpec,
+    PredictConfig,
+    TrainerSpec,
+    get_method,
+    get_trainer,
+)
 
 CONFIGS = sorted((Path(__file__).parent.parent / "configs").glob("*.yaml"))
 

@@ -8,12 +8,12 @@ import pytest
 from conftest import make_small_dataset
 from PIL import Image
 
-from degusta_learn.prompting import ImagePart, Prompt, build_prompt
 from degusta_learn.render import text
 from degusta_learn.render.compose import CANVAS_BG, objects_layout, sheet_source
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import Renderer
 from degusta_learn.scene import make_episodes
+from degusta_learn.task.prompt import ImagePart, Prompt, build_prompt
 from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
 RENDER = 448  # data.render_size of the GPU fine-tuning configs

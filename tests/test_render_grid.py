@@ -10,7 +10,12 @@ from scipy.stats import circmean
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.render.grid import (
-    DIRECTIONS, Grid, circular_mean, direction_to_rotation, quantization_rmsd, rotation_to_direction,
+    DIRECTIONS,
+    Grid,
+    circular_mean,
+    direction_to_rotation,
+    quantization_rmsd,
+    rotation_to_direction,
 )
 from degusta_learn.scene import default_catalog
 

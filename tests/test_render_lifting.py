@@ -17,7 +17,15 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.render import sprites, tables
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import METHODS, Renderer, gomo_layout, method_liftings, oal_text, order_text
-from degusta_learn.scene import Arrangement, Catalog, CatalogObject, Placement, Table, default_catalog, default_tables
+from degusta_learn.scene import (
+    Arrangement,
+    Catalog,
+    CatalogObject,
+    Placement,
+    Table,
+    default_catalog,
+    default_tables,
+)
 
 SIZE = 128  # small images keep the tests fast; the layout is the same at 448
 CAT = default_catalog()

@@ -1,4 +1,4 @@
-"""Full-size replicas (vlm/replicas.py): each one's published size, built on the meta device (no memory)."""
+"""Full-size replicas (vlm/random_models/replicas.py): each one's published size, built on the meta device (no memory)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.vlm.replicas import REPLICAS, meta_replica, replica_config, replica_spec
+from degusta_learn.vlm.random_models.replicas import REPLICAS, meta_replica, replica_config, replica_spec
 
 REFERENCE = Path(__file__).resolve().parent.parent.parent / "shared" / "reference-models" / "SmolVLM-256M-Instruct"
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"

@@ -7,8 +7,8 @@ import pytest
 import torch
 from finetune_support import GRID, dataset, examples, load
 
+from degusta_learn.task.grammar import AnswerGrammar
 from degusta_learn.vlm import generate as gen
-from degusta_learn.vlm.grammar import AnswerGrammar
 
 ARCH = dict(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=2, text_heads=4,
             text_kv_heads=1, text_intermediate=64, vocab_size=2048)
@@ -17,8 +17,8 @@ ARCH = dict(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_
 def _model(kind: str, tmp_path):
     if kind == "idefics3":
         return load("idefics3")
-    from degusta_learn.finetune.pretrain.base import BaseArchitecture
-    from degusta_learn.finetune.pretrain.export import save_random_base
+    from degusta_learn.pretrain.base import BaseArchitecture
+    from degusta_learn.pretrain.export import save_random_base
     from degusta_learn.vlm.load import load_vlm
 
     folder = save_random_base(tmp_path / "base", BaseArchitecture(**ARCH))

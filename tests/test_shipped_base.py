@@ -1,4 +1,4 @@
-"""The shipped tiny base VLM (checkpoints/tiny_vlm_base): a plain Hugging Face folder that loads offline and answers.
+"""The shipped tiny base VLM (degusta_learn/shipped_models/tiny_vlm_base): a plain Hugging Face folder that loads offline and answers.
 
 The one test that loads the shipped weights (every other test builds its model tiny): its files and size, the plain
 transformers Auto classes, the toolkit's loader, and one constrained perception answer that parses.
@@ -29,12 +29,12 @@ def test_the_shipped_base_loads_offline_and_answers_one_perception_question(monk
     import torch
     from transformers import AutoModelForImageTextToText, AutoProcessor
 
-    from degusta_learn.finetune.pretrain.score import score_answer
-    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples, TaskMix
+    from degusta_learn.pretrain.score import score_answer
+    from degusta_learn.pretrain.tasks import PerceptionExamples, TaskMix
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import default_catalog, default_tables
+    from degusta_learn.task.grammar import AnswerGrammar
     from degusta_learn.vlm.generate import generate_answers
-    from degusta_learn.vlm.grammar import AnswerGrammar
     from degusta_learn.vlm.load import load_vlm
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
@@ -53,7 +53,7 @@ def test_the_shipped_base_loads_offline_and_answers_one_perception_question(monk
 
 def test_the_card_reports_the_transcribe_score_when_the_benchmark_measured_it(tmp_path):
     """bench_perception.py's transcribe questions (copying, not perception) get their own line in the card."""
-    from degusta_learn.finetune.pretrain.export import BASE_META, PERCEPTION, write_card
+    from degusta_learn.pretrain.export import BASE_META, PERCEPTION, write_card
 
     (tmp_path / BASE_META).write_text((BASE_DIR / BASE_META).read_text())
     scores = json.loads((BASE_DIR / PERCEPTION).read_text())
@@ -73,8 +73,8 @@ def test_each_shipped_bases_card_gives_the_command_that_rebuilds_it_from_todays_
     the precision and CPU kernels the run trained with (recorded: `bf16-mixed` in a config is fp32 on one CPU and bf16
     on another, `cpu_kernels: native` AVX2 on one and AVX-512 on another)."""
     from degusta_learn.config import load_config
-    from degusta_learn.finetune.pretrain.export import ran_as, recipe_command
-    from degusta_learn.finetune.pretrain.train import PretrainConfig
+    from degusta_learn.pretrain.export import ran_as, recipe_command
+    from degusta_learn.pretrain.train import PretrainConfig
 
     for folder in sorted(BASE_DIR.parent.glob("tiny_vlm_base*")):
         resolved = load_config(PretrainConfig, folder / "pretrain_config.yaml")

@@ -18,7 +18,13 @@ from degusta_learn.cli import main
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.compare import MethodEntry
 from degusta_learn.shipped import (
-    PURPOSE_CHARS, SHIPPED_DIR, copy_config, list_configs, purpose, resolve_config, shipped_names,
+    PURPOSE_CHARS,
+    SHIPPED_DIR,
+    copy_config,
+    list_configs,
+    purpose,
+    resolve_config,
+    shipped_names,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -150,7 +156,7 @@ def test_every_config_verb_accepts_a_shipped_name(small_dataset_dir, tmp_path, m
 
 
 def test_compare_entries_and_quickstart_find_shipped_configs_outside_a_checkout(tmp_path, monkeypatch):
-    from degusta_learn.evaluate.quickstart import _config
+    from degusta_learn.quickstart import _config
 
     monkeypatch.chdir(tmp_path)
     assert MethodEntry(name="o", config="configs/oracle.yaml").config == str(SHIPPED_DIR / "oracle.yaml")

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from degusta_learn.finetune.module import freeze_batch_norms
-from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
 from degusta_learn.finetune.tower_cache import cache_frozen_tower, find_tower, tower_is_frozen
+from degusta_learn.pretrain.base import BaseArchitecture, build_base
 
 ARCH = dict(vision_channels=[8, 8, 16, 16], vision_stem=8, text_hidden=32, text_layers=1, text_heads=2,
             text_kv_heads=1, text_intermediate=64, vocab_size=2048)
@@ -166,8 +166,8 @@ def test_degusta_train_with_the_cache_learns_exactly_what_it_learns_without(tmp_
     from finetune_support import dataset
 
     from degusta_learn.finetune import tower_cache
-    from degusta_learn.finetune.pretrain.export import save_random_base
     from degusta_learn.methods import run_train
+    from degusta_learn.pretrain.export import save_random_base
     from degusta_learn.scene import save_dataset
 
     base = save_random_base(tmp_path / "base", BaseArchitecture(**{**ARCH, "text_layers": 2, "text_heads": 4}))

@@ -88,13 +88,13 @@ def test_finetune_dry_run_counts_like_the_collator(tmp_path, data):
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.vlm.inputs import ChatFormat
-    from degusta_learn.vlm.load import load_processor
-    from degusta_learn.finetune.train import build_examples
-    from degusta_learn.finetune.token_count import count_tokens, set_budget
     from degusta_learn.finetune.dry_run import meta_model
+    from degusta_learn.finetune.token_count import count_tokens, set_budget
+    from degusta_learn.finetune.train import build_examples
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
+    from degusta_learn.vlm.inputs import ChatFormat
+    from degusta_learn.vlm.load import load_processor
 
     cfg = load_config(FinetuneConfig, CONFIGS / "finetune_tiny_cpu.yaml", _finetune(tmp_path, data, "data.max_train_episodes=6"))
     processor = load_processor(str(tiny_dir("idefics3")))
@@ -118,9 +118,9 @@ def _counting_setup(tmp_path, data, kind="idefics3", *extra, max_length=4096):
     from degusta_learn.config import load_config
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.config import FinetuneConfig
-    from degusta_learn.finetune.train import build_examples
-    from degusta_learn.finetune.token_count import set_budget
     from degusta_learn.finetune.dry_run import meta_model
+    from degusta_learn.finetune.token_count import set_budget
+    from degusta_learn.finetune.train import build_examples
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
     from degusta_learn.vlm.inputs import ChatFormat
@@ -184,7 +184,12 @@ def test_the_dry_run_reports_what_counting_every_example_reports_and_says_what_i
 def test_the_bounded_count_refuses_an_over_budget_example_as_counting_all_did(tmp_path, data):
     """The same one-line error for the same episode as `refuse_over_budget` over every example's count; a budget
     the heaviest contexts fit passes."""
-    from degusta_learn.finetune.token_count import count_tokens, refuse_budget, refuse_over_budget, token_budget
+    from degusta_learn.finetune.token_count import (
+        count_tokens,
+        refuse_budget,
+        refuse_over_budget,
+        token_budget,
+    )
 
     collator, train, _ = _counting_setup(tmp_path, data)
     counts = count_tokens(train, collator)
@@ -271,7 +276,7 @@ def test_pretrain_dry_run(tmp_path):
     overrides = [f"trainer.run_dir={tmp_path / 'runs'}", "data.val_examples=4", "model.vocab_size=256"]
     out: list[str] = []
     from degusta_learn.config import load_config
-    from degusta_learn.finetune.pretrain.train import PretrainConfig, dry_run
+    from degusta_learn.pretrain.train import PretrainConfig, dry_run
 
     cfg = load_config(PretrainConfig, CONFIGS / "pretrain_tiny_vlm_cpu.yaml", overrides)
     dry_run(cfg, log=out.append, sample=16)
@@ -285,7 +290,7 @@ def test_pretrain_dry_run(tmp_path):
 
 def test_impossible_device_counts_name_the_key(tmp_path, data):
     from degusta_learn.config import load_config
-    from degusta_learn.trainer import TrainerConfig, check_trainer
+    from degusta_learn.training import TrainerConfig, check_trainer
 
     cores = os.cpu_count() or 1
     with pytest.raises(DegustaError, match=rf"^trainer.devices: {cores + 1} CPU processes .* {cores} cores"):

@@ -7,7 +7,7 @@ from torch.utils.data import DataLoader, TensorDataset
 
 from degusta_learn.config import from_dict, read_yaml
 from degusta_learn.errors import DegustaError
-from degusta_learn.trainer import TrainerConfig, fit, prepare_run_dir, validation_curve, x86_with_avx2
+from degusta_learn.training import TrainerConfig, fit, prepare_run_dir, validation_curve, x86_with_avx2
 
 
 class Toy(L.LightningModule):
@@ -106,7 +106,7 @@ def test_bad_trainer_config_names_the_key(data, message):
 @pytest.mark.parametrize("strategy", ["ddp_spawn", "ddp_spawn_find_unused_parameters_true"])
 def test_spawn_strategies_are_refused_before_the_run(strategy):
     """ddp_spawn pickles the run: it died inside Lightning with a PicklingError traceback."""
-    from degusta_learn.trainer import check_trainer
+    from degusta_learn.training import check_trainer
 
     with pytest.raises(DegustaError, match=rf"^trainer.strategy: '{strategy}' pickles the whole run.*use ddp"):
         check_trainer(from_dict(TrainerConfig, {"strategy": strategy, "accelerator": "cpu", "devices": 1}))
@@ -126,7 +126,7 @@ def test_val_check_interval_keeps_int_and_float():
 ])
 def test_bfloat16_on_a_cpu_without_native_support_trains_in_float32(monkeypatch, capsys, native, accelerator,
                                                                      precision, expected):
-    from degusta_learn.trainer import run_precision
+    from degusta_learn.training import run_precision
 
     monkeypatch.setattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", lambda: native)
     cfg = TrainerConfig(accelerator=accelerator, precision=precision)
@@ -135,7 +135,7 @@ def test_bfloat16_on_a_cpu_without_native_support_trains_in_float32(monkeypatch,
 
 
 def test_a_step_on_fewer_torch_threads_gives_them_back():
-    from degusta_learn.trainer import torch_threads
+    from degusta_learn.training import torch_threads
 
     before = torch.get_num_threads()
     with torch_threads(1):
@@ -152,7 +152,7 @@ def _fresh_python(code: str, **env: str):
     import subprocess
     import sys
 
-    from degusta_learn.trainer import AVX2_KERNELS
+    from degusta_learn.training import AVX2_KERNELS
 
     clean = {k: v for k, v in os.environ.items() if k not in AVX2_KERNELS} | env
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=clean, timeout=300)
@@ -160,7 +160,7 @@ def _fresh_python(code: str, **env: str):
     return done.stdout.strip().splitlines()[-1], done.stderr
 
 
-PIN = "from degusta_learn.trainer import pin_cpu_kernels; print(pin_cpu_kernels({!r}))"
+PIN = "from degusta_learn.training import pin_cpu_kernels; print(pin_cpu_kernels({!r}))"
 
 
 @pytest.mark.skipif(not x86_with_avx2(), reason="cpu_kernels: avx2 caps x86 kernels; this CPU has none to cap")

@@ -9,7 +9,7 @@ import pytest
 
 from degusta_learn.config import from_dict
 from degusta_learn.errors import DegustaError
-from degusta_learn.trainer import TrainerConfig, build_loggers, check_trainer
+from degusta_learn.training import TrainerConfig, build_loggers, check_trainer
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_learned_train import tiny_config  # noqa: E402

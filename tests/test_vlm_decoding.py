@@ -11,10 +11,11 @@ import pytest
 from finetune_support import GRID, dataset, examples, load
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting import AnswerParseError, answer_items, format_answer, parse_answer
+from degusta_learn.task.answer_format import answer_items, format_answer
+from degusta_learn.task.answers import AnswerParseError, parse_answer
+from degusta_learn.task.grammar import AnswerGrammar
 from degusta_learn.vlm.constrain import token_trie
 from degusta_learn.vlm.generate import answer_token_budget, generate_answers
-from degusta_learn.vlm.grammar import AnswerGrammar
 
 
 class FakeTokenizer:
@@ -173,7 +174,7 @@ def test_skip_lets_the_model_name_an_object_again_and_the_reader_drops_that_item
     refused, nothing stopped), the answer goes on, and the answer reader keeps each object once."""
     import torch
 
-    from degusta_learn.prompting.answers import read_answer
+    from degusta_learn.task.answers import read_answer
     from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
 
     model, processor, _, grammar = tiny
@@ -262,7 +263,7 @@ def test_substitute_gives_a_repeated_item_the_models_best_unused_id(tiny):
 
 
 def test_substitute_repeats_gives_each_repeated_item_an_id_no_item_names():
-    from degusta_learn.prompting.answers import read_answer
+    from degusta_learn.task.answers import read_answer
     from degusta_learn.vlm.generate import substitute_repeats
 
     def item(type_, id_, cell):

@@ -10,10 +10,11 @@ import random
 import numpy as np
 import pytest
 
-from degusta_learn.prompting import answer_items, format_answer, parse_answer
 from degusta_learn.render.grid import Grid, max_cells
 from degusta_learn.scene import Catalog, CatalogObject, default_catalog, object_size
-from degusta_learn.vlm.grammar import AnswerGrammar
+from degusta_learn.task.answer_format import answer_items, format_answer
+from degusta_learn.task.answers import parse_answer
+from degusta_learn.task.grammar import AnswerGrammar
 
 G8 = Grid(8, 8)
 

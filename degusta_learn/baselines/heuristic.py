@@ -34,7 +34,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from degusta_learn.baselines.transfer import (
-    circular_mean, place_on, relative_positions, stable_seed, table_distance,
+    circular_mean,
+    place_on,
+    relative_positions,
+    stable_seed,
+    table_distance,
 )
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import MethodSpec, PredictConfig

@@ -5,7 +5,7 @@ Usage:
 
 Every record is checked against its episode first (scoring.check_records): a file holds one method, and
 a prediction whose participant or target disagrees with its episode (or whose target is a context trial)
-is refused with file, line and field. The three files are written as one set (degusta_learn.outdir): an
+is refused with file, line and field. The three files are written as one set ((`files.folders`)): an
 error at any point leaves the previous report folder as it was.
 """
 
@@ -17,8 +17,9 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.report import write_report
 from degusta_learn.evaluate.scoring import EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import summarize
+from degusta_learn.files.folders import OutputKind, check_target, write_folder
+from degusta_learn.files.guard import refuse_replacing_inputs
 from degusta_learn.metrics import acceptability_curve
-from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
 from degusta_learn.scene import load_dataset, read_episodes, read_predictions
 
 __all__ = ["EVALUATION", "EpisodeRow", "evaluate_files", "score_predictions", "summarize"]
@@ -36,9 +37,9 @@ def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out:
     backends) is labelled with each file's folder name, e.g. `mogma (hf_tiny_zeroshot)`.
     """
     out = check_target(out, EVALUATION)  # refuse a bad --out before any work
-    refuse_replacing_inputs(out, EVALUATION, [*(("a predictions file", p) for p in prediction_files),
-                                              ("the episodes file", episodes)],
-                            datasets=[dataset], writes=EVALUATION.patterns, key="--out")
+    refuse_replacing_inputs(out, [*(("a predictions file", p) for p in prediction_files),
+                                  ("the episodes file", episodes)],
+                            kind=EVALUATION, datasets=[dataset], writes=EVALUATION.patterns, key="--out")
     ds = load_dataset(dataset)
     ep_map = {e.id: e for e in read_episodes(episodes, ds)} if episodes else None
     loaded = [(Path(path), read_predictions(path, ds.catalog, ep_map)) for path in prediction_files]

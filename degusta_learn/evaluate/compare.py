@@ -26,7 +26,7 @@ The report lists the methods best first by mean set RMSD, degenerate methods las
 that order.
 
 Writes `<out>/report.md`, `report.html` (opens without a server), `metrics.json`, `per_episode.csv`,
-`plots/*.png` and `qualitative/*.png` as one set (degusta_learn.outdir): a failure leaves the previous
+`plots/*.png` and `qualitative/*.png` as one set ((`files.folders`)): a failure leaves the previous
 report as it was, and `predictions/` is carried over.
 """
 
@@ -48,20 +48,29 @@ from degusta_learn.config import bounded, load_config, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import METHOD_NAME, EpisodeRow, check_records, score_predictions
 from degusta_learn.evaluate.summary import rank_methods, summarize
-from degusta_learn.prompting.backends.base import backend_class
-from degusta_learn.locks import hold
-from degusta_learn.textsafe import MESSAGE_LIMIT, one_line
-from degusta_learn.fileio import atomic_write_json, file_sha256, read_json, refuse_overwriting_inputs, stat_tree
+from degusta_learn.files.folders import OutputKind, check_target, write_folder
+from degusta_learn.files.guard import refuse_replacing_inputs
+from degusta_learn.files.identity import file_sha256, stat_tree
+from degusta_learn.files.jsonio import atomic_write_json, read_json
+from degusta_learn.files.locks import hold
 from degusta_learn.metrics import acceptability_curve, paired_bootstrap
 from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
+from degusta_learn.prompting.backends.base import backend_class
 from degusta_learn.render.lifting import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
-from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
-from degusta_learn.shipped import resolve_or_keep
-from degusta_learn.scene.dataset import dataset_identity  # also what fine-tuned adapters record
 from degusta_learn.scene import (
-    CONTEXT_LENGTHS, Dataset, Episode, Prediction, load_dataset, make_episodes, read_episodes, read_predictions,
+    CONTEXT_LENGTHS,
+    Dataset,
+    Episode,
+    Prediction,
+    load_dataset,
+    make_episodes,
+    read_episodes,
+    read_predictions,
     write_predictions,
 )
+from degusta_learn.scene.dataset import dataset_identity  # also what fine-tuned adapters record
+from degusta_learn.shipped import resolve_or_keep
+from degusta_learn.textsafe import MESSAGE_LIMIT, one_line
 
 
 class EpisodeSetMismatch(DegustaError):
@@ -459,7 +468,7 @@ def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, conf
     inputs = [("the compare config", config_path), ("the episodes file", cfg.episodes),
               *((f"the predictions file of method {e.name!r}", e.predictions) for e in cfg.methods),
               *((f"the predict config of method {e.name!r}", e.config) for e in cfg.methods)]
-    refuse_replacing_inputs(out, COMPARISON, inputs, datasets=[cfg.dataset], writes=COMPARISON.patterns,
+    refuse_replacing_inputs(out, inputs, kind=COMPARISON, datasets=[cfg.dataset], writes=COMPARISON.patterns,
                             keep=("predictions",))
     for entry in cfg.methods:
         written = [pred_dir / f"{entry.name}.jsonl"]
@@ -469,7 +478,7 @@ def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, conf
         for path in written:
             mine = f"the predictions file of method {entry.name!r}"  # predictions/NAME.jsonl may be rewritten
             own = [i for i in inputs if not (path == written[0] and i[0] == mine)]  # from its own content
-            refuse_overwriting_inputs(path, own, key="out", datasets=[cfg.dataset])
+            refuse_replacing_inputs(path, own, key="out", datasets=[cfg.dataset])
 
 
 def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None) -> Comparison:

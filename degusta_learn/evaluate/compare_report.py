@@ -20,11 +20,18 @@ import numpy as np
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
 from degusta_learn.evaluate.report import (
-    METRIC_NOTES, acceptability_lines, answer_table, context_table, few_object_warnings, md_label, method_table,
+    METRIC_NOTES,
+    acceptability_lines,
+    answer_table,
+    context_table,
+    few_object_warnings,
+    md_label,
+    method_table,
     write_per_episode_csv,
 )
 from degusta_learn.evaluate.summary import GRAMMAR_MARK, ranked
-from degusta_learn.fileio import atomic_write_json, atomic_write_text
+from degusta_learn.files.atomic import atomic_write_text
+from degusta_learn.files.jsonio import atomic_write_json
 from degusta_learn.textsafe import MESSAGE_LIMIT, html_text, markdown_to_html, md_code, md_text
 
 _HTML = """<!doctype html><html><head><meta charset="utf-8"><title>{title}</title><style>

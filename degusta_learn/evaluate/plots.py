@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, ranked  # noqa: E402
-from degusta_learn.fileio import atomic_open  # noqa: E402
+from degusta_learn.files.atomic import atomic_open  # noqa: E402
 from degusta_learn.scene import CONTEXT_LENGTHS  # noqa: E402
 from degusta_learn.textsafe import plot_text  # noqa: E402
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from PIL import Image, ImageDraw
 
-from degusta_learn.fileio import atomic_write_bytes
+from degusta_learn.files.atomic import atomic_write_bytes
 from degusta_learn.render.lifting import Renderer
 from degusta_learn.render.text import font
 from degusta_learn.scene import Dataset, Placement

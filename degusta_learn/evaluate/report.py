@@ -17,7 +17,8 @@ from pathlib import Path
 
 from degusta_learn.evaluate.scoring import CSV_COLUMNS, EpisodeRow
 from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, RANKING_NOTE, label, ranked
-from degusta_learn.fileio import atomic_open, atomic_write_json, atomic_write_text
+from degusta_learn.files.atomic import atomic_open, atomic_write_text
+from degusta_learn.files.jsonio import atomic_write_json
 from degusta_learn.metrics import SET_PENALTY
 from degusta_learn.textsafe import md_prose, md_text, write_csv
 
@@ -145,7 +146,7 @@ def write_per_episode_csv(path: Path, rows: list[EpisodeRow]) -> None:
 
 def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, dict], rows: list[EpisodeRow],
                  curve: dict[float, float], from_ratings: bool, notes: list[str] | None = None) -> None:
-    """Write metrics.json, per_episode.csv and report.md into `out` (a staging folder: see degusta_learn.outdir)."""
+    """Write metrics.json, per_episode.csv and report.md into `out` (a staging folder: see (`files.folders`))."""
     out.mkdir(parents=True, exist_ok=True)
     summary = ranked(summary)
     atomic_write_json(out / "metrics.json", summary)

@@ -13,10 +13,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import read_jsonl
+from degusta_learn.files.jsonio import read_jsonl
 from degusta_learn.metrics import score_many
-from degusta_learn.prompting.aggregate import AGGREGATIONS
 from degusta_learn.scene import Dataset, Episode, Prediction
+from degusta_learn.task.aggregate import AGGREGATIONS
 
 _CONTEXT_IN_ID = re.compile(r"/k(\d+)$")
 EPISODE_ID = re.compile(r"(?P<participant>.+)/t(?P<target>\d{1,9})/k(?P<context>\d{1,9})")

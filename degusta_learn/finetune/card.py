@@ -19,7 +19,7 @@ from pathlib import Path
 
 import yaml
 
-from degusta_learn.fileio import atomic_write_text
+from degusta_learn.files.atomic import atomic_write_text
 from degusta_learn.textsafe import md_code, md_text
 
 CONFIG_FILE = "finetune_config.yaml"
@@ -49,7 +49,7 @@ def write_finetune_files(folder: Path, cfg, adapter: bool, selection: dict | Non
     """Write `finetune_config.yaml` and `README.md` (the card) into `folder`; returns the card's path.
 
     Args:
-        folder: the model folder being written (a staging folder: `outdir.write_folder`).
+        folder: the model folder being written (a staging folder: `files.folders.write_folder`).
         cfg: the run's FinetuneConfig.
         adapter: a peft adapter folder (else a full model folder).
         selection: for a best folder, the validation it comes from (`export.selection_record`); None: last weights.

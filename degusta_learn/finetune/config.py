@@ -8,11 +8,11 @@ from typing import ClassVar, Literal
 from degusta_learn.config import bounded, check_choices, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.lora import LoraConfig
-from degusta_learn.optim import OptimConfig
-from degusta_learn.prompting.aggregate import ANCHORED, Aggregation
-from degusta_learn.render.grid import Grid
 from degusta_learn.names import CONTEXT_LENGTHS
-from degusta_learn.trainer import TrainerConfig
+from degusta_learn.optim import OptimConfig
+from degusta_learn.render.grid import Grid
+from degusta_learn.task.aggregate import ANCHORED, Aggregation
+from degusta_learn.training import TrainerConfig
 from degusta_learn.vlm.prompt_options import COMPOSE, GROUPS, PromptOptions
 
 
@@ -144,7 +144,7 @@ class EvalConfig:
     null: data.batch_size. Greedy answers are those of one-by-one generation (tests/test_finetune_validation.py)."""
     n: int = bounded(1, 1, 64)
     """Answers per validation episode: 1 = one answer, as before; > 1 = n sampled answers aggregated exactly as
-    `degusta predict` aggregates them (prompting/aggregate.py), the aggregate then scored (n x the generation)."""
+    `degusta predict` aggregates them (task/aggregate.py), the aggregate then scored (n x the generation)."""
     aggregation: Aggregation = "steps"
     """n > 1: how the answers become one plan, as predict's `aggregation` (steps: the paper's; votes: the objects
     most answers name, as many as the median answer's length; greedy_votes: one more, greedy answer lengthened

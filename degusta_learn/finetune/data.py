@@ -33,6 +33,8 @@ import torch
 from torch.utils.data import DistributedSampler
 
 from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
+import random
+from degusta_learn.finetune.config import FinetuneConfig
 
 
 @dataclass
@@ -59,8 +61,7 @@ class LiftedExamples:
 
     def __init__(self, ds, episodes, method: str, grid, render_size: int = 448,
                  options: PromptOptions | None = None, resample_seed: int | None = None):
-        from degusta_learn.prompting import answer_kind
-
+        from degusta_learn.task.answers import answer_kind
         self.ds, self.episodes, self.method, self.grid = ds, list(episodes), method, grid
         self.kind = answer_kind(method)
         self.render_size = render_size
@@ -114,13 +115,11 @@ class LiftedExamples:
         return self._prompt(self.episode(i, epoch))
 
     def _prompt(self, ep):
-        from degusta_learn.prompting import build_prompt
-
+        from degusta_learn.task.prompt import build_prompt
         return adapt_prompt(build_prompt(self.method, self.ds, ep, self.renderer, self.grid), self.options)
 
     def answer(self, i: int) -> str:
-        from degusta_learn.prompting import answer_items, format_answer
-
+        from degusta_learn.task.answer_format import answer_items, format_answer
         ep = self.episodes[i]
         target = self.ds.arrangement(ep.participant, ep.target)
         return format_answer(answer_items(list(target.placements), self.ds.catalog, self.kind, self.grid), self.kind)
@@ -169,3 +168,21 @@ class TrainSampler(DistributedSampler):
         order = self.order()
         order = (order * math.ceil(self.total_size / max(1, len(order))))[:self.total_size]
         return iter([(self.epoch, i) for i in order[self.rank:self.total_size:self.num_replicas]])
+
+
+def build_examples(cfg: FinetuneConfig, ds, grid):
+    """(train LiftedExamples, val LiftedExamples) from the dataset's seeded participant split."""
+    from degusta_learn.finetune.data import LiftedExamples
+    from degusta_learn.scene import make_episodes
+
+    opts = cfg.data.prompt_options()
+    train = [e for k in cfg.data.contexts for e in make_episodes(ds, k, "train", cfg.seed)]
+    if cfg.data.max_train_episodes is not None and len(train) > cfg.data.max_train_episodes:
+        train = random.Random(cfg.seed).sample(train, cfg.data.max_train_episodes)
+    val = make_episodes(ds, cfg.data.val_context, "val", cfg.seed) if cfg.data.val_episodes else []
+    if len(val) > cfg.data.val_episodes:
+        val = random.Random(cfg.seed + 1).sample(val, cfg.data.val_episodes)
+    # training contexts drawn afresh each epoch, seeded by the training seed (the split stays the split seed's)
+    resample = cfg.trainer.seed if cfg.data.resample_contexts else None
+    return (LiftedExamples(ds, train, cfg.method, grid, cfg.data.render_size, opts, resample_seed=resample),
+            LiftedExamples(ds, val, cfg.method, grid, cfg.data.render_size, opts))  # validation: fixed

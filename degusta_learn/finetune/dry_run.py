@@ -11,7 +11,13 @@ from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.config import FinetuneConfig
-from degusta_learn.finetune.token_count import describe_budget, refuse_budget, set_budget, token_budget, token_summary
+from degusta_learn.finetune.token_count import (
+    describe_budget,
+    refuse_budget,
+    set_budget,
+    token_budget,
+    token_summary,
+)
 
 
 def meta_model(source: str, key: str = "model.name"):
@@ -32,9 +38,14 @@ def meta_model(source: str, key: str = "model.name"):
 def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: int, batch_size: int,
                counts: list[dict], on_gpu: bool):
     """The dry run's memory estimate of a VLM fine-tune (see `dryrun.estimate_memory` for the model)."""
-    from degusta_learn.dryrun import (CPU_ACTIVATION_FACTOR, RUNTIME_CPU_BYTES, RUNTIME_GPU_BYTES, estimate_memory,
-                                      transformer_activations)
-    from degusta_learn.trainer import effective_precision, world_size
+    from degusta_learn.dryrun import (
+        CPU_ACTIVATION_FACTOR,
+        RUNTIME_CPU_BYTES,
+        RUNTIME_GPU_BYTES,
+        estimate_memory,
+        transformer_activations,
+    )
+    from degusta_learn.training import effective_precision, world_size
 
     dtype = cfg_model.dtype if cfg_model.dtype != "auto" else ("bfloat16" if on_gpu and lora_cfg.mode != "full"
                                                                else "float32")  # full: fp32 master weights
@@ -101,17 +112,17 @@ def dry_run(cfg: FinetuneConfig, log=print, sample: int | None = 32, heaviest: b
 
     import torch
 
+    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.train import build_examples
-    from degusta_learn.vlm.inputs import ChatFormat
-    from degusta_learn.vlm.hub import resolve_model
-    from degusta_learn.vlm.load import load_processor
     from degusta_learn.finetune.module import monitor_keys
+    from degusta_learn.finetune.data import build_examples
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
-    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
-    from degusta_learn.trainer import trains_on_gpu
+    from degusta_learn.training import trains_on_gpu
+    from degusta_learn.vlm.hub import resolve_model
+    from degusta_learn.vlm.inputs import ChatFormat
+    from degusta_learn.vlm.load import load_processor
 
     ds = load_dataset(cfg.dataset)
     grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)
@@ -120,7 +131,7 @@ def dry_run(cfg: FinetuneConfig, log=print, sample: int | None = 32, heaviest: b
         source = cfg.model.name
         marker = Path(source) / "degusta_tiny.json"
         if cfg.model.build_tiny and not marker.is_file():
-            from degusta_learn.vlm.tiny import ensure_tiny
+            from degusta_learn.vlm.random_models.tiny import ensure_tiny
 
             tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="degusta-dry-run-"))
             source = str(ensure_tiny(Path(tmp) / "tiny", cfg.model.build_tiny))

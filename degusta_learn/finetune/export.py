@@ -12,7 +12,7 @@ A fine-tuning run folder holds two exports of the weights, both loadable without
 
 Every export also gets `degusta_finetune.json` (`finetune.train.write_meta`: how prompts were built), the resolved
 config (`finetune_config.yaml`) and a model card (`README.md`: finetune/card.py) that the Hub and peft read.
-A folder is staged beside it and swapped in whole (`outdir.write_folder` with `MODEL_FOLDER`): a reader never
+A folder is staged beside it and swapped in whole (`files.folders.write_folder` with `MODEL_FOLDER`): a reader never
 sees a half-written adapter; a kill leaves the previous complete folder (or, in the instant between the two
 renames, an `.old.tmp` folder that the next write puts back), and a file of the user's inside it is kept.
 
@@ -27,9 +27,10 @@ import contextlib
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json, read_json
-from degusta_learn.outdir import OutputKind, write_folder
-from degusta_learn.trainer import BEST
+from degusta_learn.files.folders import OutputKind, write_folder
+from degusta_learn.files.jsonio import atomic_write_json, read_json
+from degusta_learn.training import BEST
+from degusta_learn.finetune.config import FinetuneConfig
 
 LAST_DIRS = {True: "adapter", False: "model"}
 """Folder of the last weights, by `module.lora`."""
@@ -48,7 +49,6 @@ def write_weights(module, out: Path, selection: dict | None = None) -> Path:
     (`write_folder`: a card that cannot be written leaves the previous folder as it was)."""
     from degusta_learn.finetune.card import write_finetune_files
     from degusta_learn.finetune.lora import save_adapter
-    from degusta_learn.finetune.train import write_meta
 
     with write_folder(out, MODEL_FOLDER) as tmp:
         if module.lora:
@@ -67,7 +67,7 @@ def write_weights(module, out: Path, selection: dict | None = None) -> Path:
 def validation_scores(module, selection: dict | None) -> dict | None:
     """The validation scores of the weights being exported: the module's last validation when it is the selected
     one (or, for the last weights, the latest), else the run's logged row at the selected step; None if unknown."""
-    from degusta_learn.trainer import validation_curve
+    from degusta_learn.training import validation_curve
 
     last = getattr(module, "last_val", None)
     step = int(getattr(module, "global_step", -1))
@@ -145,3 +145,27 @@ def checkpoint_score(ckpt: dict) -> float:
             if score is not None:
                 return float(score)
     return float("nan")
+
+
+def write_meta(out: Path, cfg: FinetuneConfig, processor, chosen_on_val: bool = True) -> None:
+    """Write the run's `FinetuneRecord` (`degusta_finetune.json`, vlm/record.py) into `out`: how the prompts
+    were built, and what the model was trained on (dataset fingerprint, split seed, train and validation
+    participants), which the hf backend checks before predicting. `chosen_on_val`: whether validation chose the
+    weights in `out` (a best folder, the run folder) or not (the last weights); early stopping makes it true."""
+    from degusta_learn.render.grid import Grid
+    from degusta_learn.scene import load_dataset, participants_in
+    from degusta_learn.scene.dataset import dataset_identity
+    from degusta_learn.vlm.record import FinetuneRecord, TrainingData, write_record
+
+    ds = load_dataset(cfg.dataset)
+    trained_on = TrainingData(
+        dataset=cfg.dataset, fingerprint=dataset_identity(ds), seed=cfg.seed, contexts=list(cfg.data.contexts),
+        train_participants=participants_in(ds, "train", cfg.seed),
+        val_participants=participants_in(ds, "val", cfg.seed) if cfg.data.val_episodes else [],  # as build_examples
+        chosen_on_val=chosen_on_val or cfg.trainer.early_stopping_patience is not None)
+    write_record(out, FinetuneRecord(
+        base_model=cfg.model.name, method=cfg.method, mode=cfg.lora.mode,
+        grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
+        prompt=cfg.data.prompt_options(),
+        image_size=cfg.model.image_size, render_size=cfg.data.render_size,
+        processor_size=dict(getattr(processor.image_processor, "size", {}) or {}), trained_on=trained_on))

@@ -4,7 +4,7 @@ Usage:
     degusta data export-sft --config configs/finetune_smolvlm_256m.yaml --out exports/smolvlm_sft
     degusta data export-sft --config configs/finetune_smolvlm_256m.yaml --out exports/smolvlm_sft_val --split val
 
-Writes into `--out` (staged and swapped in whole by `outdir.write_folder`; a folder this command did not write
+Writes into `--out` (staged and swapped in whole by `files.folders.write_folder`; a folder this command did not write
 is refused):
 
 - `<split>.jsonl`: one line per example, the Hugging Face datasets "messages + images" layout that TRL's
@@ -32,7 +32,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
+from degusta_learn.files.folders import OutputKind, check_target, write_folder
+from degusta_learn.files.guard import refuse_replacing_inputs
 
 SPLITS = ("train", "val")
 MARKER = "degusta_export.json"
@@ -89,7 +90,7 @@ def export_sft(config: str | Path | None, out: str | Path, split: str = "train",
     if not isinstance(cfg, FinetuneConfig):
         raise DegustaError(f"{config}: kind: {cfg.kind!r}; export-sft takes a fine-tuning config (kind: finetune)")
     check_target(out, SFT_EXPORT)
-    refuse_replacing_inputs(out, SFT_EXPORT, inputs=[("the config", config)], datasets=[cfg.dataset],
+    refuse_replacing_inputs(out, [("the config", config)], kind=SFT_EXPORT, datasets=[cfg.dataset],
                             key="--out")
     ds = load_dataset(cfg.dataset)
     train, val = build_examples(cfg, ds, Grid(cfg.data.grid.rows, cfg.data.grid.cols))

@@ -41,7 +41,7 @@ def field_counts(items, placements, gt, catalog, grid, kind: str) -> FieldCounts
         kind: "grid" (cells and direction compared) or "unmarked" (ids only).
     """
     from degusta_learn.metrics import match
-    from degusta_learn.prompting.answers import answer_items
+    from degusta_learn.task.answer_format import answer_items
 
     if not items or not placements or not gt.placements:
         return FieldCounts()

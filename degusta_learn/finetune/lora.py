@@ -13,15 +13,15 @@ Parts are found by attribute (transformers >= 4.52 layouts): Idefics3/SmolVLM `m
 
 Example:
     model = apply_lora(model, LoraConfig(r=8))           # PeftModel, only adapter tensors trainable
-    save_adapter(model, "checkpoints/run/adapter")       # plain PeftModel.save_pretrained
+    save_adapter(model, "runs/run/adapter")       # plain PeftModel.save_pretrained
 """
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import Literal
 from pathlib import Path
+from typing import Literal
 
 from degusta_learn.config import bounded, check_choices
 from degusta_learn.errors import DegustaError
@@ -30,8 +30,8 @@ MODES = ("lora", "full", "qlora")
 MAX_TARGETS = 1000
 """Most module names in `lora.targets` / `lora.vision_targets` (each is matched against every Linear module)."""
 _LANGUAGE = ("model.text_model", "model.language_model", "language_model", "model.model")
-_VISION = ("model.vision_model", "model.visual", "model.vision_tower", "vision_tower")
-_CONNECTOR = ("model.connector", "model.visual.merger", "model.multi_modal_projector", "multi_modal_projector")
+VISION_PREFIXES = ("model.vision_model", "model.visual", "model.vision_tower", "vision_tower")
+CONNECTOR_PREFIXES = ("model.connector", "model.visual.merger", "model.multi_modal_projector", "multi_modal_projector")
 
 
 @dataclass
@@ -74,7 +74,7 @@ class LoraConfig:
                 raise DegustaError(f"lora.{key}: expected module names of 1 to 200 characters, got {bad!r}"[:200])
 
 
-def _part(model, candidates: tuple[str, ...], exclude: str | None = None) -> str | None:
+def find_part(model, candidates: tuple[str, ...], exclude: str | None = None) -> str | None:
     names = dict(model.named_modules())
     return next((c for c in candidates if c in names and c != exclude), None)
 
@@ -84,9 +84,9 @@ def resolve_targets(model, cfg: LoraConfig) -> list[str]:
     import torch.nn as nn
 
     linear = [n for n, m in model.named_modules() if isinstance(m, nn.Linear)]
-    language = _part(model, _LANGUAGE)
-    vision = _part(model, _VISION)
-    connector = _part(model, _CONNECTOR)
+    language = find_part(model, _LANGUAGE)
+    vision = find_part(model, VISION_PREFIXES)
+    connector = find_part(model, CONNECTOR_PREFIXES)
     out: list[str] = []
 
     def pick(key: str, prefix: str | None, names: list[str], skip: str | None = None) -> None:
@@ -94,7 +94,7 @@ def resolve_targets(model, cfg: LoraConfig) -> list[str]:
             return
         if prefix is None:
             raise DegustaError(f"lora.{key}: this model has no part the toolkit recognises for it "
-                               f"(looked for {', '.join(_LANGUAGE if key == 'targets' else _VISION)})")
+                               f"(looked for {', '.join(_LANGUAGE if key == 'targets' else VISION_PREFIXES)})")
         inside = [n for n in linear if n.startswith(prefix + ".") and not (skip and n.startswith(skip + "."))]
         for target in names:
             hits = [n for n in inside if n == target or n.endswith("." + target)]
@@ -133,7 +133,7 @@ def apply_lora(model, cfg: LoraConfig):
 
 
 def _is_vision(model, name: str) -> bool:
-    vision = _part(model, _VISION)
+    vision = find_part(model, VISION_PREFIXES)
     return bool(vision) and name.startswith(vision + ".")
 
 

@@ -19,7 +19,7 @@ TensorBoard image summaries). Logged per validation (besides val/loss):
   val/parse_rate_unconstrained.
 
 Under DDP each rank generates for its share of the val episodes; the per-episode scores are gathered and
-each episode counted once (`trainer.gather_unique_rows`), so the metrics equal a single-process
+each episode counted once (`training.gather_unique_rows`), so the metrics equal a single-process
 validation's (val/loss is the mean of the ranks' batch means). With LoRA, Lightning checkpoints hold only
 the trainable tensors (+ optimizer state), never the frozen base. Exports (`export.py`, rank 0 only): the
 last weights to `<run>/adapter/` (full: `model/`) whenever a checkpoint is saved, and the best weights to
@@ -36,9 +36,9 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from degusta_learn.optim import lr_schedule
 from degusta_learn.finetune.loss import lm_loss, unwrap
-from degusta_learn.trainer import gather_unique_rows
+from degusta_learn.optim import lr_schedule
+from degusta_learn.training import gather_unique_rows
 
 VAL_COLUMNS = ("index", "parsed", "parsed_free", "rmsd", "acc", "set_rmsd", "count_error", "n_gt", "n_matched",
                "failed", "pairs", "id_correct", "cell_iou", "direction_correct")
@@ -48,8 +48,7 @@ PROGRESS_BAR = ("val/set_rmsd", "val/parse_rate", "val/object_accuracy")
 
 def monitor_keys(cfg) -> set[str]:
     """Every metric FinetuneModule logs under a FinetuneConfig `cfg` (what `trainer.monitor` may name)."""
-    from degusta_learn.prompting import answer_kind
-
+    from degusta_learn.task.answers import answer_kind
     keys = {"train/loss", "train/answer_tokens"}
     if cfg.data.val_episodes > 0:  # no validation: only training losses exist
         keys |= {"val/loss", "val/parse_rate", "val/rmsd", "val/object_accuracy", "val/set_rmsd", "val/count_error",
@@ -129,9 +128,9 @@ class FinetuneModule(L.LightningModule):
         """Generate `eval.n` answers per example (one `generate` call, left-padded), aggregate each example's
         answers as predict does and score the aggregate: one VAL_COLUMNS row (+ `text`, the first answer, and
         `placements`) per example. `indices` (positions in the validation set) seed the samples."""
-        from degusta_learn.prompting.aggregate import ANCHORED
+        from degusta_learn.task.aggregate import ANCHORED
+        from degusta_learn.task.grammar import AnswerGrammar
         from degusta_learn.vlm.generate import generate_batch
-        from degusta_learn.vlm.grammar import AnswerGrammar
 
         e = self.cfg.eval
         indices = list(range(len(examples))) if indices is None else indices
@@ -155,9 +154,9 @@ class FinetuneModule(L.LightningModule):
         plan written as an answer (`answer_items`: the cells its placements cover)."""
         from degusta_learn.finetune.field_scores import field_counts
         from degusta_learn.metrics import score_prediction
-        from degusta_learn.prompting import AnswerParseError, parse_answer
-        from degusta_learn.prompting.aggregate import combine
-        from degusta_learn.prompting.answers import answer_items
+        from degusta_learn.task.aggregate import combine
+        from degusta_learn.task.answer_format import answer_items
+        from degusta_learn.task.answers import AnswerParseError, parse_answer
 
         parsed = []
         for text in texts + ([greedy] if greedy is not None else []):
@@ -280,10 +279,10 @@ def param_groups(module, optim) -> list[dict]:
     connector's at `optim.connector_lr` (either null: `optim.lr`), everything else (the language model, any
     auxiliary head) at `optim.lr`. The parts are found as `lora.py` finds them (the connector first: Qwen2-VL's
     merger sits inside its vision tower). Empty groups are left out; each group carries its `name`."""
-    from degusta_learn.finetune.lora import _CONNECTOR, _VISION, _part
+    from degusta_learn.finetune.lora import CONNECTOR_PREFIXES, VISION_PREFIXES, find_part
 
     hf = unwrap(module.model)
-    vision, connector = _part(hf, _VISION), _part(hf, _CONNECTOR)
+    vision, connector = find_part(hf, VISION_PREFIXES), find_part(hf, CONNECTOR_PREFIXES)
     part = {}
     for name, p in hf.named_parameters():
         if connector and name.startswith(connector + "."):

@@ -24,9 +24,8 @@ from degusta_learn.errors import DegustaError
 def set_budget(cfg, processor, model_config) -> None:
     """Set the processor's image budget, then check it against the grid and `data.max_length` against the
     model's context (one-line errors naming the key)."""
+    from degusta_learn.task.answers import answer_kind
     from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
-    from degusta_learn.prompting import answer_kind
-
     set_image_budget(processor, model_config, cfg.model.image_size)
     if answer_kind(cfg.method) == "grid":
         check_grid_resolution(processor, model_config, cfg.data.grid, key="model.image_size")

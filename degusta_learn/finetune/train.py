@@ -6,7 +6,7 @@ Usage (CPU smoke run: builds a random-weight tiny Idefics3 on first use, a few m
 GPU (SmolVLM-256M-Instruct from the local HF cache):
     degusta train --config configs/finetune_smolvlm_256m.yaml
 
-Writes `checkpoints/<run>/`: config.yaml, last.ckpt / best.ckpt (LoRA: adapter tensors + optimizer
+Writes `runs/<run>/`: config.yaml, last.ckpt / best.ckpt (LoRA: adapter tensors + optimizer
 only), csv/ and tb/ logs, the last weights as `adapter/` (PeftModel.save_pretrained; LoRA) or `model/`
 (full), the best ones (best `trainer.monitor`, default val/set_rmsd: what best.ckpt holds) as `best_adapter/`
 or `best_model/` (what the predict configs load; finetune/export.py), optional `merged/` (last weights),
@@ -16,32 +16,15 @@ backend re-applies the one and checks predictions against the other).
 
 from __future__ import annotations
 
-import random
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.config import FinetuneConfig
+from degusta_learn.finetune.data import build_examples
 from degusta_learn.finetune.dry_run import dry_run
+from degusta_learn.finetune.export import write_meta
 from degusta_learn.finetune.token_count import heaviest_draw, set_budget, token_budget
 from degusta_learn.methods import TrainerSpec
-
-
-def build_examples(cfg: FinetuneConfig, ds, grid):
-    """(train LiftedExamples, val LiftedExamples) from the dataset's seeded participant split."""
-    from degusta_learn.finetune.data import LiftedExamples
-    from degusta_learn.scene import make_episodes
-
-    opts = cfg.data.prompt_options()
-    train = [e for k in cfg.data.contexts for e in make_episodes(ds, k, "train", cfg.seed)]
-    if cfg.data.max_train_episodes is not None and len(train) > cfg.data.max_train_episodes:
-        train = random.Random(cfg.seed).sample(train, cfg.data.max_train_episodes)
-    val = make_episodes(ds, cfg.data.val_context, "val", cfg.seed) if cfg.data.val_episodes else []
-    if len(val) > cfg.data.val_episodes:
-        val = random.Random(cfg.seed + 1).sample(val, cfg.data.val_episodes)
-    # training contexts drawn afresh each epoch, seeded by the training seed (the split stays the split seed's)
-    resample = cfg.trainer.seed if cfg.data.resample_contexts else None
-    return (LiftedExamples(ds, train, cfg.method, grid, cfg.data.render_size, opts, resample_seed=resample),
-            LiftedExamples(ds, val, cfg.method, grid, cfg.data.render_size, opts))  # validation: fixed
 
 
 def train_sampler(cfg: FinetuneConfig, train, collator):
@@ -76,7 +59,6 @@ def prepare_model(cfg: FinetuneConfig):
     return lora.apply_lora(model, cfg.lora), processor
 
 
-
 def check_budget(examples, collator) -> None:
     """Collate the longest-looking training example now (`heaviest_draw`), so a budget error comes before
     training."""
@@ -86,42 +68,23 @@ def check_budget(examples, collator) -> None:
     collator([examples.example(i, ep)])
 
 
-def write_meta(out: Path, cfg: FinetuneConfig, processor, chosen_on_val: bool = True) -> None:
-    """Write the run's `FinetuneRecord` (`degusta_finetune.json`, vlm/record.py) into `out`: how the prompts
-    were built, and what the model was trained on (dataset fingerprint, split seed, train and validation
-    participants), which the hf backend checks before predicting. `chosen_on_val`: whether validation chose the
-    weights in `out` (a best folder, the run folder) or not (the last weights); early stopping makes it true."""
-    from degusta_learn.render.grid import Grid
-    from degusta_learn.scene import load_dataset, participants_in
-    from degusta_learn.scene.dataset import dataset_identity
-    from degusta_learn.vlm.record import FinetuneRecord, TrainingData, write_record
-
-    ds = load_dataset(cfg.dataset)
-    trained_on = TrainingData(
-        dataset=cfg.dataset, fingerprint=dataset_identity(ds), seed=cfg.seed, contexts=list(cfg.data.contexts),
-        train_participants=participants_in(ds, "train", cfg.seed),
-        val_participants=participants_in(ds, "val", cfg.seed) if cfg.data.val_episodes else [],  # as build_examples
-        chosen_on_val=chosen_on_val or cfg.trainer.early_stopping_patience is not None)
-    write_record(out, FinetuneRecord(
-        base_model=cfg.model.name, method=cfg.method, mode=cfg.lora.mode,
-        grid=Grid(cfg.data.grid.rows, cfg.data.grid.cols),
-        prompt=cfg.data.prompt_options(),
-        image_size=cfg.model.image_size, render_size=cfg.data.render_size,
-        processor_size=dict(getattr(processor.image_processor, "size", {}) or {}), trained_on=trained_on))
-
-
 def run(cfg: FinetuneConfig) -> Path:
     """Train per `cfg` (resuming `<run>/last.ckpt` if present); returns the run folder."""
     from degusta_learn.finetune import lora
     from degusta_learn.finetune.collate import Collator
     from degusta_learn.finetune.export import save_last, sync_best, validation_scores
+    from degusta_learn.finetune.module import (
+        FinetuneData,
+        FinetuneModule,
+        enable_gradient_checkpointing,
+        monitor_keys,
+    )
     from degusta_learn.finetune.tower_cache import cache_frozen_tower
-    from degusta_learn.vlm.generate import chat_format
-    from degusta_learn.finetune.module import FinetuneData, FinetuneModule, enable_gradient_checkpointing, monitor_keys
-    from degusta_learn.prompting import answer_kind
     from degusta_learn.render.grid import Grid
     from degusta_learn.scene import load_dataset
-    from degusta_learn.trainer import fit, training_run
+    from degusta_learn.task.answers import answer_kind
+    from degusta_learn.training import fit, training_run
+    from degusta_learn.vlm.generate import chat_format
 
     with training_run(cfg.trainer, monitor_keys(cfg)):  # checks trainer values, seeds before the model exists
         ds = load_dataset(cfg.dataset)
@@ -150,9 +113,9 @@ def run(cfg: FinetuneConfig) -> Path:
             return run_dir
         save_last(module, run_dir)  # adapter/ (LoRA) or model/ (full): the last weights
         if module.lora and cfg.lora.merge:
+            from degusta_learn.files.folders import write_folder
             from degusta_learn.finetune.card import write_finetune_files
             from degusta_learn.finetune.export import MODEL_FOLDER
-            from degusta_learn.outdir import write_folder
 
             with write_folder(run_dir / "merged", MODEL_FOLDER) as merged:  # whole or not at all, as every export
                 lora.merge_and_save(model, processor, merged)
@@ -168,8 +131,8 @@ def ensure_tiny_model(cfg: FinetuneConfig, wait_s: float = 600.0) -> None:
     (torchrun, srun) only rank 0 builds it and the others wait for its marker file."""
     import time
 
-    from degusta_learn.vlm.tiny import TINY_VERSION, ensure_tiny
-    from degusta_learn.trainer import global_rank
+    from degusta_learn.training import global_rank
+    from degusta_learn.vlm.random_models.tiny import TINY_VERSION, ensure_tiny
 
     marker = Path(cfg.model.name) / "degusta_tiny.json"
     if global_rank() == 0:

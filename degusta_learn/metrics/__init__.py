@@ -20,7 +20,13 @@ from degusta_learn.metrics.acceptability import (
 from degusta_learn.metrics.bootstrap import bootstrap_ci, paired_bootstrap
 from degusta_learn.metrics.kabsch import kabsch_rmsd, kabsch_rmsd_batch, kabsch_transform, unregistered_rmsd
 from degusta_learn.metrics.matching import feature_table, match, match_costs
-from degusta_learn.metrics.scores import EpisodeScore, MatchedPair, matched_pairs, score_many, score_prediction
+from degusta_learn.metrics.scores import (
+    EpisodeScore,
+    MatchedPair,
+    matched_pairs,
+    score_many,
+    score_prediction,
+)
 from degusta_learn.metrics.set_score import (
     DEGENERATE_FRACTION,
     SET_PENALTY,

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from degusta_learn.config import _show, check_seed
+from degusta_learn.config import check_seed, show_value
 from degusta_learn.errors import DegustaError
 
 _CHUNK = 2_000_000  # indices drawn per chunk
@@ -27,10 +27,10 @@ def _check(n_resamples: int, alpha: float, seed: int) -> None:
     if isinstance(n_resamples, bool) or not isinstance(n_resamples, int | np.integer) \
             or not 1 <= n_resamples <= MAX_RESAMPLES:
         raise DegustaError(f"bootstrap (n_bootstrap): expected a number of resamples from 1 to "
-                           f"{MAX_RESAMPLES:,}, got {_show(n_resamples)}")
+                           f"{MAX_RESAMPLES:,}, got {show_value(n_resamples)}")
     check_seed(seed)
     if not isinstance(alpha, int | float | np.floating) or not 0.0 < alpha < 1.0:
-        raise DegustaError(f"alpha: expected a number between 0 and 1, got {_show(alpha)}")
+        raise DegustaError(f"alpha: expected a number between 0 and 1, got {show_value(alpha)}")
 
 
 def _resampled_means(x: np.ndarray, n_resamples: int, seed: int) -> np.ndarray:

@@ -215,8 +215,8 @@ class TiedReadout:
 
     The decoder names an object by copying an image token into its answer, whose logits are the output layer's
     dot products with it. Under the oracle teacher it learned to copy sums of embeddings (E["D5"] + E["fork"] +
-    E["48"] + E["S"]); tokens that merely let a separate head tell ids apart were not read (docs/tiny_base.md,
-    point 18). `loss` is the cross-entropy of each labelled token's output-layer logits towards every token of
+    E["48"] + E["S"]); tokens that merely let a separate head tell ids apart were not read.
+    `loss` is the cross-entropy of each labelled token's output-layer logits towards every token of
     its cell's oracle sum (`OracleTokens`), so the projector writes what the decoder's copy can name; the output
     layer is detached (the decoder owns it). `readouts` scores the same logits as `DenseHead.readouts` does its
     own (type, id within type, direction of single-object cells): what a perfect copy of the token would name.

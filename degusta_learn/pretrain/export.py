@@ -6,12 +6,12 @@ generation_config.json) and the processor (tokenizer, image processor, chat temp
 training config (`pretrain_config.yaml`) and `README.md`, the model card. `bench_perception.py`
 adds `perception.json` (its held-out scores) and re-renders the card with `write_card`.
 
-The folder is staged beside its destination and swapped in whole (`outdir.write_folder`): a reader never sees
+The folder is staged beside its destination and swapped in whole (`files.folders.write_folder`): a reader never sees
 half of it, and a file of the user's in it is kept.
 
 Example:
-    export_base(model, processor, cfg, Path("checkpoints/tiny_vlm_base"), run_dir, history)
-    write_card(Path("checkpoints/tiny_vlm_base"))          # after perception.json changed
+    export_base(model, processor, cfg, Path("runs/tiny_vlm_base"), run_dir, history)
+    write_card(Path("runs/tiny_vlm_base"))          # after perception.json changed
 """
 
 from __future__ import annotations
@@ -20,16 +20,19 @@ import dataclasses
 import shutil
 from pathlib import Path
 
-from degusta_learn.fileio import atomic_write_text, read_json
-from degusta_learn.trainer import validation_curve
+from degusta_learn.files.atomic import atomic_write_text
+from degusta_learn.files.jsonio import read_json
+from degusta_learn.training import validation_curve
 from degusta_learn.vlm.record import BASE_FILE as BASE_META  # the record's file name, defined once
+
 PERCEPTION = "perception.json"
 PRETRAIN_CONFIG = "pretrain_config.yaml"  # the run's resolved config, in the folder
 RECIPE = "pretrain_tiny_vlm_cpu.yaml"  # the shipped pretraining config
 COMMAND = f"degusta train --config configs/{RECIPE}"
-_LOGISTICS = {"trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.progress_bar", "trainer.loggers",
-              "trainer.log_every_n_steps", "trainer.tracking_offline"}
-"""Keys that say where a run logs and how it shows progress, not what it builds: left out of the recipe command."""
+_LOGISTICS = {"export", "trainer.run_name", "trainer.run_dir", "trainer.resume", "trainer.progress_bar",
+              "trainer.loggers", "trainer.log_every_n_steps", "trainer.tracking_offline"}
+"""Keys that say where a run writes and logs and how it shows progress, not what it builds: left out of the recipe
+command."""
 
 
 def ran_as(training: dict) -> dict:
@@ -52,7 +55,7 @@ def recipe_command(cfg, ran: dict | None = None) -> str:
 
     `ran`: what the run actually computed with (`ran_as`), compared in place of the config's values: `bf16-mixed` is
     fp32 on a CPU without native bfloat16 and bf16 on one with it, `cpu_kernels: native` is AVX2 on one CPU and
-    AVX-512 on another, and each pair builds different bases (docs/tiny_base.md points 44, 46), so the command names
+    AVX-512 on another, and each pair builds different bases, so the command names
     the arithmetic that built this one."""
     import shlex
 
@@ -75,15 +78,16 @@ def recipe_command(cfg, ran: dict | None = None) -> str:
 
 
 def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | None = None,
-                run_steps: int | None = None) -> Path:
+                run_steps: int | None = None, replace_shipped: bool = False) -> Path:
     """Save `model` + `processor` to `out` with degusta_base.json, pretrain_config.yaml and README.md.
 
-    `steps`: the training step of these weights (the best validation's); `run_steps`: how long the run went."""
+    `steps`: the training step of these weights (the best validation's); `run_steps`: how long the run went;
+    `replace_shipped`: `out` is the shipped base, asked for by name (`export: tiny_vlm_base`)."""
     from degusta_learn.config import dump_yaml, to_dict
+    from degusta_learn.files.folders import write_folder
     from degusta_learn.finetune.export import MODEL_FOLDER
-    from degusta_learn.outdir import write_folder
     from degusta_learn.render.grid import Grid
-    from degusta_learn.trainer import effective_precision
+    from degusta_learn.training import effective_precision
     from degusta_learn.vlm.prompt_options import PromptOptions
     from degusta_learn.vlm.record import BaseRecord, write_record
 
@@ -97,7 +101,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
     curve = validation_curve(run_dir, "val/perception")
     arch = cfg.model
     n_params = sum(p.numel() for p in model.parameters())
-    with write_folder(out, MODEL_FOLDER) as tmp:  # no perception.json: a benchmark of earlier weights is stale
+    with write_folder(out, MODEL_FOLDER, allow_shipped=replace_shipped) as tmp:  # no perception.json: a benchmark of earlier weights is stale
         model.save_pretrained(str(tmp))
         processor.save_pretrained(str(tmp))
         write_record(tmp, BaseRecord(
@@ -110,7 +114,7 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
             catalog=cfg.dataset or "embedded default (125 objects, 5 tables)",
             training={"command": recipe_command(cfg, ran=ran_as(arithmetic)), "steps": steps,
                       # the arithmetic this machine ran the config in (bf16-mixed is 32-true on a CPU without native
-                      # bfloat16; the kernels AVX2 or AVX-512): builds of one recipe in each differ (points 44, 46)
+                      # bfloat16; the kernels AVX2 or AVX-512): builds of one recipe in each differ
                       **arithmetic,
                       "run_steps": run_steps if run_steps is not None else steps,
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
@@ -136,7 +140,7 @@ def _fmt(v) -> str:
 
 def _device(trainer) -> str:
     """"gpu", "cpu", "mps" or "tpu": where a run of `trainer` (a TrainerConfig) trains on this machine."""
-    from degusta_learn.trainer import trains_on_gpu
+    from degusta_learn.training import trains_on_gpu
 
     if trains_on_gpu(trainer):
         return "gpu"
@@ -299,8 +303,8 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
 
 def save_random_base(out: Path, arch=None, seed: int = 0) -> Path:
     """An UNTRAINED base (random weights) exported like a pretrained one: for tests and smoke runs only."""
-    from degusta_learn.finetune.pretrain.base import BaseArchitecture, build_base
-    from degusta_learn.finetune.pretrain.train import PretrainConfig
+    from degusta_learn.pretrain.base import BaseArchitecture, build_base
+    from degusta_learn.pretrain.config import PretrainConfig
 
     arch = arch or BaseArchitecture()
     model, processor = build_base(arch, seed=seed)

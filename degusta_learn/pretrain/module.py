@@ -29,7 +29,7 @@ import math
 
 from degusta_learn.finetune.loss import lm_loss, unwrap
 from degusta_learn.finetune.module import FinetuneModule, freeze_batch_norms
-from degusta_learn.finetune.pretrain.retrieval import KEYS as RETRIEVAL_KEYS
+from degusta_learn.pretrain.retrieval import KEYS as RETRIEVAL_KEYS
 
 GOMO_TOKENS = 8  # an id is at most three digits (one token with the domain tokenizer) and the stop token
 
@@ -68,7 +68,7 @@ class PerceptionModule(FinetuneModule):
         self._tokens = self._features = None
         self._recomputing = False
         self.teacher = None
-        from degusta_learn.finetune.pretrain.dense import DenseHead, OracleTeacher, projector_of
+        from degusta_learn.pretrain.dense import DenseHead, OracleTeacher, projector_of
 
         if self.dense_weight > 0:
             hidden = model.config.get_text_config().hidden_size
@@ -79,7 +79,7 @@ class PerceptionModule(FinetuneModule):
                                          cfg.data.teacher_hold + self.tower_steps)
         self.readout = None
         if cfg.data.readout_weight > 0:
-            from degusta_learn.finetune.pretrain.dense import OracleTokens, TiedReadout
+            from degusta_learn.pretrain.dense import OracleTokens, TiedReadout
 
             oracle = OracleTokens(catalog, processor.tokenizer, grid, "readout_weight")
             self.readout = TiedReadout(model.get_output_embeddings(), oracle, catalog)
@@ -87,7 +87,7 @@ class PerceptionModule(FinetuneModule):
             projector_of(model).register_forward_hook(self._capture)
         self.retrieval = None
         if cfg.data.retrieval_weight > 0:
-            from degusta_learn.finetune.pretrain.retrieval import RetrievalLoss
+            from degusta_learn.pretrain.retrieval import RetrievalLoss
 
             self.retrieval = RetrievalLoss(model, cfg.data.retrieval_layer, cfg.data.retrieval_head)
 
@@ -112,8 +112,8 @@ class PerceptionModule(FinetuneModule):
             return super().configure_optimizers()
         import torch
 
-        from degusta_learn.finetune.pretrain.dense import projector_of
         from degusta_learn.optim import warmup_factor
+        from degusta_learn.pretrain.dense import projector_of
 
         o, hf = self.cfg.optim, unwrap(self.model)
         seen = {id(p) for m in (hf.model.vision_tower, projector_of(hf), self.dense) for p in m.parameters()}
@@ -133,7 +133,7 @@ class PerceptionModule(FinetuneModule):
         vision stage is over (again after a resume)."""
         if not (self.cfg.data.freeze_tower and self.tower_steps > 0) or self.vision_stage:
             return
-        from degusta_learn.finetune.pretrain.dense import projector_of
+        from degusta_learn.pretrain.dense import projector_of
 
         hf = unwrap(self.model)
         parts = [hf.model.vision_tower] + ([projector_of(hf)] if _projector_frozen(self.cfg) else [])
@@ -146,10 +146,10 @@ class PerceptionModule(FinetuneModule):
         """The image tokens the teacher's pull and the tied readout act on. After a vision stage they train the
         projector only, on the tower's detached output: the tower has learned to see, and the pull (whose targets,
         the decoder's embedding sums, have another scale) would otherwise write over it (measured: the tower's id
-        readout fell from 0.57 to 0.06 within 50 steps, docs/tiny_base.md point 16)."""
+        readout fell from 0.57 to 0.06 within 50 steps)."""
         if self.tower_steps <= 0 or self._features is None:
             return self._tokens
-        from degusta_learn.finetune.pretrain.dense import projector_of
+        from degusta_learn.pretrain.dense import projector_of
 
         self._recomputing = True  # the forward hook would swap in the teacher's oracle sums (until November 26 it
         try:                      # did: while the teacher held, the pull was 0 and trained nothing)
@@ -205,7 +205,7 @@ class PerceptionModule(FinetuneModule):
         return loss + self.dense_weight * dense
 
     def grammar(self):
-        from degusta_learn.vlm.grammar import AnswerGrammar
+        from degusta_learn.task.grammar import AnswerGrammar
 
         if self._grammar is None:
             self._grammar = AnswerGrammar("grid", self.catalog, self.grid)
@@ -223,7 +223,7 @@ class PerceptionModule(FinetuneModule):
                                 on_repeat=self.cfg.eval.on_repeat)[0].text
 
     def validation_step(self, batch, batch_idx):
-        from degusta_learn.finetune.pretrain.score import score_answer
+        from degusta_learn.pretrain.score import score_answer
 
         inputs, examples = batch
         self._tokens = None
@@ -246,7 +246,7 @@ class PerceptionModule(FinetuneModule):
             self._val.append(score_answer(ex, self.answer(ex), self.catalog, self.grid))
 
     def on_validation_epoch_end(self):
-        from degusta_learn.finetune.pretrain.score import summarize
+        from degusta_learn.pretrain.score import summarize
 
         if not self._val:
             return

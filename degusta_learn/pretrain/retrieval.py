@@ -4,8 +4,8 @@ An answer item copies its cells and direction from the image: `{'type': 'cup', '
 ['E5', ...], 'cardinal_direction': 'S'}` is right only if, at each cell and at the direction, the decoder
 reads the image tokens of object 18. A decoder from scratch finds that circuit (match the id against the
 image tokens, copy what is there) late and at a seed-dependent step: on the same data, 0.14 first-cell
-accuracy at step 450 from the pipeline's initial weights against 0.64 from another draw (docs/tiny_base.md,
-point 14). The labels say exactly where to look, so one head is told:
+accuracy at step 450 from the pipeline's initial weights against 0.64 from another draw.
+The labels say exactly where to look, so one head is told:
 
 - `RetrievalTargets` (collate side, in DataLoader workers): for every supervised answer position whose next
   token is a grid cell or a direction, the positions of the image tokens (of the image the question asks
@@ -42,9 +42,8 @@ class RetrievalTargets:
     def __init__(self, catalog, tokenizer, image_token_id: int, tokens_per_image: int, grid, list_items: bool = False):
         """`list_items`: in *list* answers, whose types and ids come from the image too, also the positions
         that predict an item's type and id point at that item's object (read ahead to the item's id)."""
+        from degusta_learn.pretrain.dense import single_token
         from degusta_learn.render.grid import DIRECTIONS
-
-        from degusta_learn.finetune.pretrain.dense import single_token
 
         def one(text: str) -> int:
             return single_token(tokenizer, text, "retrieval_weight", "attention supervision")

@@ -31,8 +31,7 @@ HEADLINE = ("object_f1", "cells_exact", "direction", "mark_id")
 
 def score_answer(example, text: str, catalog, grid) -> dict:
     """One answer's counts (see the module docstring); `example.meta` holds the task and its truth."""
-    from degusta_learn.prompting import AnswerParseError, parse_answer
-
+    from degusta_learn.task.answers import AnswerParseError, parse_answer
     task = example.meta["task"]
     if task == "gomo":
         m = re.fullmatch(r"\s*(\d{1,4})\s*", text)

@@ -23,7 +23,7 @@ prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
   placement-order line (the sentence `PromptOptions.context_answers` adds to a preference prompt), and the
   ``list`` question in placement order about one of them: the answer is that scene's written list, copied.
   Reading a list from the prompt and writing it out again, item by item to its end, is what a preference
-  prompt with the context tables written out asks of the decoder (docs/tiny_base.md, point 30).
+  prompt with the context tables written out asks of the decoder.
 - ``gomo``: one GoMO sheet of a random subset of one type's objects in random order, so a position on
   the sheet says nothing about an id without looking; "Which object_reference_id is marked on the
   object in row 2, column 3 ...?" and the answer is the integer.
@@ -49,7 +49,7 @@ import numpy as np
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.finetune.data import Example
-from degusta_learn.finetune.pretrain.scenes import random_scene
+from degusta_learn.pretrain.scenes import random_scene
 from degusta_learn.vlm.prompt_options import PromptOptions, adapt_prompt
 
 TASKS = ("list", "describe", "gomo", "locate", "transcribe")  # new tasks go last: earlier draws stay
@@ -79,7 +79,7 @@ class TaskMix:
     """How many `describe` questions one example asks about its scene (different objects, up to all of the
     scene's), each answered before the next is asked: the first in the prompt, the others as follow-up turns
     (`Example.followups`). Several one-object questions on one image teach the decoder to find an id among the
-    image tokens far sooner than one (docs/tiny_base.md, point 13)."""
+    image tokens far sooner than one."""
     scenes: list[float] = field(default_factory=lambda: [0.4, 0.2, 0.15, 0.25])
     """Relative weights of 1, 2, 3, 4 scenes in a `list` prompt."""
     reading_order: float = 0.5
@@ -184,8 +184,7 @@ class PerceptionExamples:
         build = {"list": self._list, "describe": self._describe, "gomo": self._gomo, "locate": self._locate,
                  "transcribe": self._transcribe}[task]
         parts, answer, meta = build(rng, self.mix_at(i), k, sheet, empty)
-        from degusta_learn.prompting import Prompt
-
+        from degusta_learn.task.prompt import Prompt
         meta["task"] = task
         return Example(episode=f"perception/{self.seed}/{i}", prompt=Prompt("perception", parts, f"perception/{i}"),
                        answer=answer, meta=meta, followups=tuple(meta.pop("followups", ())))
@@ -193,8 +192,8 @@ class PerceptionExamples:
     # ------------------------------------------------------------------ tasks
     def _scene_parts(self, scene, name: str, labels: list) -> list:
         """The "name:" label, the GMA image and the order line of a scene; its cell labels go to `labels`."""
-        from degusta_learn.prompting import ImagePart
         from degusta_learn.render.lifting import order_text
+        from degusta_learn.task.prompt import ImagePart
 
         image = self.renderer.gma(scene.table, scene.placements, self.grid)
         labels.append(self.cell_labels(scene.placements))
@@ -218,16 +217,14 @@ class PerceptionExamples:
         return row, col, p.x
 
     def _truth(self, placements) -> tuple[str, list[dict]]:
-        from degusta_learn.prompting import answer_items, format_answer
-
+        from degusta_learn.task.answer_format import answer_items, format_answer
         items = answer_items(list(placements), self.catalog, "grid", self.grid)
         truth = [{"type": it.type, "id": it.id, "cells": list(it.cells), "direction": it.direction} for it in items]
         return format_answer(items, "grid"), truth
 
     def _scenes(self, rng, k: int, sheet: bool, empty: bool):
         """The parts of a prompt with k random scenes (see `list`), their cell labels and the scenes."""
-        from degusta_learn.prompting import ImagePart
-
+        from degusta_learn.task.prompt import ImagePart
         parts: list = []
         labels: list = []
         if sheet:
@@ -266,8 +263,7 @@ class PerceptionExamples:
         return parts, answer, {"truth": truth, "scenes": k, "cell_labels": labels, "asked_image": int(sheet) + asked}
 
     def _transcribe(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
-        from degusta_learn.prompting import Prompt
-
+        from degusta_learn.task.prompt import Prompt
         parts, labels, scenes = self._scenes(rng, k, sheet, empty)
         truths = [self._truth(scene.placements) for scene in scenes]  # (answer text, truth items) per scene
         written = {f"final_state_{j}.jpg": text for j, (text, _) in enumerate(truths, start=1)}
@@ -280,8 +276,7 @@ class PerceptionExamples:
                                "asked_image": int(sheet) + asked, "order": "placement"}
 
     def _object_sheets(self) -> list:
-        from degusta_learn.prompting import ImagePart, Prompt
-
+        from degusta_learn.task.prompt import ImagePart, Prompt
         parts: list = ["These are the objects I have, one image per object type. Each object is marked with "
                        "its object_reference_id."]
         for t in self.types:
@@ -305,8 +300,8 @@ class PerceptionExamples:
                                       "followups": [(q, a) for q, (a, _) in zip(questions[1:], answers[1:])]}
 
     def _gomo(self, rng, mix: TaskMix, k: int, sheet: bool, empty: bool):
-        from degusta_learn.prompting import ImagePart
         from degusta_learn.render.lifting import gomo_layout
+        from degusta_learn.task.prompt import ImagePart
 
         type_ = self.types[int(rng.integers(len(self.types)))]
         pool = self.catalog.of_type(type_)

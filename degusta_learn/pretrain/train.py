@@ -16,167 +16,19 @@ val/object_f1, val/cells_exact, val/direction, val/mark_id and their mean val/pe
 weights are written to `export` as a plain Hugging Face model folder (config, safetensors, processor,
 tokenizer) with `degusta_base.json` and a model card (README.md): those of best.ckpt when `trainer.monitor`
 names a metric (e.g. val/perception), else the last ones (the shipped config: its 16 validation questions
-picked worse weights than the last twice, docs/tiny_base.md points 18-19).
+picked worse weights than the last twice).
 """
 
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-from degusta_learn.config import bounded, seed_field
-from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.config import EvalConfig
-from degusta_learn.optim import OptimConfig
-from degusta_learn.render.grid import Grid
-from degusta_learn.finetune.pretrain.base import OUTPUT_STRIDE, BaseArchitecture
-from degusta_learn.finetune.pretrain.tasks import TaskMix
 from degusta_learn.methods import TrainerSpec
-from degusta_learn.trainer import TrainerConfig, trains_on_gpu
-
-
-@dataclass
-class PretrainData:
-    """The `data:` section: the perception examples and their batching."""
-
-    grid: Grid = field(default_factory=Grid)
-    """The labelled grid drawn over the scenes (the base learns this grid)."""
-    mix: TaskMix = field(default_factory=TaskMix)
-    """Which questions, how often."""
-    steps_per_epoch: int = bounded(300, 1, 10_000_000)
-    """Training steps between validations (an epoch of fresh examples; last.ckpt is written at its end)."""
-    val_examples: int = bounded(48, 0, 1_000_000)
-    """Held-out questions generated and scored at every validation."""
-    batch_size: int = bounded(8, 1, 4096)
-    """Examples per step; a batch holds one task and one number of images (little padding)."""
-    max_length: int = bounded(2048, 1, 262_144)
-    """Token budget of one example; longer is an error, never truncated."""
-    num_workers: int = bounded(0, 0, 256)
-    """DataLoader worker processes rendering the scenes (0: in the main process)."""
-    dense_weight: float = 0.05
-    """Weight of the dense auxiliary loss on the image tokens (what covers each token, where it is); 0: off."""
-    tower_steps: int = bounded(0, 0, 10_000_000)
-    """A vision stage first: for these steps only the vision tower, its projector and the dense head train, on the
-    dense loss alone (the decoder is not run), on the curriculum's one-scene images. The curriculum, the teacher
-    and the decoder's own warmup and cosine schedule start after it; `trainer.max_steps` counts both stages."""
-    freeze_tower: bool = False
-    """After the vision stage, keep the vision tower as the stage left it (weights and BatchNorm statistics); the
-    projector, the dense head and the decoder go on training. Unfrozen, the decoder's answer loss reaches the tower
-    through its tokens and erased the object ids the stage had taught it (docs/tiny_base.md, point 16). Without a
-    vision stage (`tower_steps: 0`) there is nothing to keep and it has no effect."""
-    freeze_projector: bool = False
-    """With `freeze_tower`, keep the projector as the stage left it too: the decoder then learns to read the image
-    tokens the stage made, which tell object ids apart. Trainable, the projector lost them within 300 steps once the
-    decoder's answer loss reached it (id readout 0.55 -> 0.06, docs/tiny_base.md, point 17). The teacher's pull,
-    which trains the projector only after a stage, is then off (the decoder still sees the teacher's tokens)."""
-    teacher_steps: int = bounded(0, 0, 10_000_000)
-    """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
-    instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
-    teacher_hold: int = bounded(0, 0, 10_000_000)
-    """Steps at teacher probability 1 before it starts to fall over `teacher_steps` (e.g. a curriculum's)."""
-    teacher_weight: float = 1.0
-    """Weight of the pull of the tower's image tokens towards those oracle sums (while teacher_steps > 0)."""
-    readout_weight: float = 0.0
-    """Weight of the tied readout (`dense.TiedReadout`), after any vision stage: each labelled image token, read
-    through the decoder's own output layer, should name its cell's content (cell, types, ids, directions), so the
-    projector writes ids where the decoder's copy can name them; 0: off. Needs a trainable projector."""
-    retrieval_weight: float = 1.0
-    """Weight of the attention supervision (`retrieval.py`): one decoder head is told to look, at every answer
-    cell and direction, at the image tokens of the object the answer names; 0: off."""
-    retrieval_layer: int = bounded(1, 0, 1024)
-    """The decoder layer of the supervised head (the previous-token head is in layer 0)."""
-    retrieval_head: int = bounded(2, 0, 1024)
-    """The supervised head of that layer (by default not in the previous-token head's key group)."""
-    retrieval_list_items: bool = False
-    """Also supervise, in *list* answers, the positions predicting each item's type and id (they come from the
-    image there, not from the question): the scan over a scene's objects that a list needs."""
-    curriculum_steps: int = bounded(0, 0, 10_000_000)
-    """The first steps draw their questions from `curriculum_mix` instead of `mix` (0: no curriculum)."""
-    curriculum_mix: TaskMix = field(default_factory=lambda: TaskMix(
-        lists=0.0, describe=1.0, gomo=0.0, locate=0.0, describe_questions=8, scenes=[1.0, 0.0, 0.0, 0.0],
-        objects_sheet=0.0, empty_table=0.0))
-    """The questions of the first `curriculum_steps` steps: one scene, up to eight *describe* questions about it,
-    each answered before the next, the task shape on which a decoder from scratch learns to find an object's
-    id among the image tokens (docs/tiny_base.md, point 13; *locate* questions alone were ~3x slower). The shipped
-    config adds *locate* and list questions to it: with *describe* alone the decoder never learned to take the
-    next named object (point 21)."""
-
-    def __post_init__(self):
-        for key in ("steps_per_epoch", "batch_size", "max_length"):
-            if getattr(self, key) < 1:
-                raise DegustaError(f"data.{key}: expected >= 1, got {getattr(self, key)}")
-        if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0 or self.retrieval_weight < 0:
-            raise DegustaError("data.val_examples / data.num_workers / data.dense_weight / data.retrieval_weight: "
-                               "expected >= 0")
-        if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
-            raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
-        if self.readout_weight < 0:
-            raise DegustaError(f"data.readout_weight: expected >= 0, got {self.readout_weight}")
-        if self.readout_weight > 0 and self.freeze_projector:
-            raise DegustaError("data.readout_weight: the tied readout trains the projector, which "
-                               "data.freeze_projector: true keeps fixed; set one of them off")
-        if self.freeze_projector and not self.freeze_tower:
-            raise DegustaError("data.freeze_projector: a frozen projector over a tower that goes on training would read "
-                               "tokens the stage never made; set data.freeze_tower: true as well")
-        if self.tower_steps > 0 and self.dense_weight <= 0:
-            raise DegustaError("data.tower_steps: the vision stage trains the tower on the dense loss, which "
-                               "data.dense_weight: 0 turns off; set data.dense_weight > 0 or data.tower_steps: 0")
-
-
-@dataclass
-class PretrainConfig:
-    """`degusta train` with `kind: pretrain`: perception pretraining of a tiny base VLM from random weights."""
-
-    kind: str = "pretrain"
-    """Trainer name (TRAINERS)."""
-    dataset: str | None = None
-    """null: the embedded default catalog and tables; a dataset folder: its catalog.json and tables.json (its arrangements are never read)."""
-    seed: int = seed_field()
-    """Seed of the weights and of the example streams (validation uses seed + 1,000,003)."""
-    model: BaseArchitecture = field(default_factory=BaseArchitecture)
-    """Sizes of the FastVLM built from random weights."""
-    data: PretrainData = field(default_factory=PretrainData)
-    """Examples and batching."""
-    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1.5e-3, weight_decay=0.01, warmup_steps=100))
-    """Optimizer and schedule."""
-    eval: EvalConfig = field(default_factory=lambda: EvalConfig(report_unconstrained=False, max_new_tokens=240))
-    """How validation generates (constrained to the answer grammar by default)."""
-    channels_last: bool = False
-    """Train the vision tower's convolutions in the channels-last memory layout: the same model up to rounding, its
-    forward and backward faster on a CPU (the vision stage 0.51 s a step where 0.65 without it; benchmarks/RESULTS.md,
-    "The recipe's time"). The export is written in the usual layout."""
-    export: str = "checkpoints/tiny_vlm_base"
-    """Where the trained base is written as a plain Hugging Face model folder (with a model card)."""
-    trainer: TrainerConfig = field(default_factory=lambda: TrainerConfig(
-        run_name="pretrain_tiny_vlm_cpu", max_epochs=-1, max_steps=4000, monitor="val/perception",
-        monitor_mode="max"))
-    """Lightning settings and the run folder."""
-
-    def __post_init__(self):
-        need = max(self.data.grid.rows, self.data.grid.cols)
-        if self.model.tokens_per_side < need:  # no image token would cover a single grid cell
-            raise DegustaError(f"model.image_size: {self.model.image_size} px gives {self.model.tokens_per_side} x "
-                               f"{self.model.tokens_per_side} image tokens, fewer than the grid's {need} cells per "
-                               f"side; use at least {need * OUTPUT_STRIDE} px (or a coarser data.grid)")
-        d, t = self.data, self.trainer
-        if d.tower_steps > 0 and t.early_stopping_patience is not None:
-            raise DegustaError("trainer.early_stopping_patience: the validations of the vision stage "
-                               "(data.tower_steps) answer no questions, so val/perception is undefined there; set "
-                               "trainer.early_stopping_patience: null")
-        if d.retrieval_weight > 0 and not (d.retrieval_layer < self.model.text_layers and
-                                           d.retrieval_head < self.model.text_heads):
-            key = "retrieval_layer" if d.retrieval_layer >= self.model.text_layers else "retrieval_head"
-            raise DegustaError(f"data.{key}: layer {d.retrieval_layer}, head {d.retrieval_head} is not in the decoder "
-                               f"(model.text_layers {self.model.text_layers}, model.text_heads "
-                               f"{self.model.text_heads}); pick one inside it or set data.retrieval_weight: 0")
-        square = self.data.grid.rows == self.data.grid.cols == self.model.tokens_per_side
-        for key in ("dense_weight", "teacher_steps", "readout_weight", "retrieval_weight"):  # one token per cell
-            if getattr(self.data, key) > 0 and not square:
-                raise DegustaError(f"data.{key}: the dense loss, the oracle teacher and the attention supervision "
-                                   f"need one image token per grid cell, but model.image_size {self.model.image_size} "
-                                   f"px gives {self.model.tokens_per_side} x {self.model.tokens_per_side} tokens for a "
-                                   f"{self.data.grid.rows} x {self.data.grid.cols} grid; set data.{key}=0 or match them")
+from degusta_learn.pretrain.config import PretrainConfig, PretrainData
+from degusta_learn.render.grid import Grid
+from degusta_learn.training import trains_on_gpu
 
 
 def catalog_and_tables(dataset: str | None):
@@ -265,9 +117,9 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
     """`<run>/init/`: the random-weight base and its processor, built once (a resumed run reuses it).
     With `data.teacher_steps`, `data.readout_weight` or `data.retrieval_weight`, the tokenizer is checked for the
     oracle tokens and the attention supervision (given `catalog` and `grid`) before anything is written."""
-    from degusta_learn.fileio import atomic_write_json
+    from degusta_learn.files.jsonio import atomic_write_json
+    from degusta_learn.pretrain.base import build_base
     from degusta_learn.vlm.load import quiet_transformers
-    from degusta_learn.finetune.pretrain.base import build_base
 
     init = run_dir / "init"
     if (init / "degusta_init.json").is_file():
@@ -275,14 +127,14 @@ def initial_model(cfg: PretrainConfig, run_dir: Path, catalog=None, grid=None) -
     quiet_transformers()
     model, processor = build_base(cfg.model, seed=cfg.seed)
     if needs_oracle(cfg.data) and catalog is not None and grid is not None:
-        from degusta_learn.finetune.pretrain.dense import OracleTokens
+        from degusta_learn.pretrain.dense import OracleTokens
 
         OracleTokens(catalog, processor.tokenizer, grid, oracle_key(cfg.data))  # refuses a tokenizer that splits cells or ids
     if cfg.data.retrieval_weight > 0 and catalog is not None and grid is not None:
-        from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
+        from degusta_learn.pretrain.retrieval import RetrievalTargets
 
         RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, cfg.model.tokens_per_image, grid)
-    from degusta_learn.writeerrors import writing
+    from degusta_learn.files.write_errors import writing
 
     with writing(init, "initial model", after="; free space and re-run (it is rebuilt)"):  # one line, no traceback
         init.mkdir(parents=True, exist_ok=True)
@@ -310,11 +162,10 @@ def build_recipe(cfg: PretrainConfig, run_dir: Path, module_cls=None) -> RecipeP
     """The initial model (`initial_model`, in the training layout), the PerceptionModule (or `module_cls`) and the
     example streams and collators of `cfg`, as `run` trains them (benchmarks/bench_pretrain_steps.py times them)."""
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.finetune.pretrain.dense import DenseLabels, OracleTokens
-    from degusta_learn.finetune.pretrain.module import PerceptionModule
-    from degusta_learn.finetune.pretrain.retrieval import RetrievalTargets
-    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
-    from degusta_learn.render.grid import Grid
+    from degusta_learn.pretrain.dense import DenseLabels, OracleTokens
+    from degusta_learn.pretrain.module import PerceptionModule
+    from degusta_learn.pretrain.retrieval import RetrievalTargets
+    from degusta_learn.pretrain.tasks import PerceptionExamples
     from degusta_learn.vlm.generate import chat_format
     from degusta_learn.vlm.load import load_vlm
 
@@ -351,9 +202,9 @@ def run(cfg: PretrainConfig) -> Path:
     import torch
 
     from degusta_learn.finetune.module import FinetuneData
-    from degusta_learn.finetune.pretrain.export import export_base
-    from degusta_learn.finetune.pretrain.module import monitor_keys
-    from degusta_learn.trainer import BEST, fit, training_run
+    from degusta_learn.pretrain.export import export_base
+    from degusta_learn.pretrain.module import monitor_keys
+    from degusta_learn.training import BEST, fit, training_run
 
     with training_run(cfg.trainer, monitor_keys(cfg)):  # checks trainer values, seeds before the model exists
         run_dir = cfg.trainer.path
@@ -365,16 +216,17 @@ def run(cfg: PretrainConfig) -> Path:
         data = FinetuneData(parts.train, parts.val, parts.collate, d.batch_size, d.num_workers, sampler=sampler,
                             val_collator=parts.collator)
         run_dir = fit(module, data, cfg.trainer, full_config=cfg, monitors=monitor_keys(cfg))
+        out, by_name = cfg.export_target
         if module.trainer is not None and not module.trainer.is_global_zero:
-            return Path(cfg.export)
+            return out
         best, step = run_dir / BEST, module.global_step
         if best.is_file():  # trainer.monitor set: export the best validation, not merely the last weights
             state = torch.load(best, map_location="cpu", weights_only=True)
             module.load_state_dict(state["state_dict"])
             step = int(state.get("global_step", step))
         prepare_model(module.model, cfg, export=True)
-        return export_base(module.model, processor, cfg, Path(cfg.export), run_dir, steps=step,
-                           run_steps=module.global_step)
+        return export_base(module.model, processor, cfg, out, run_dir, steps=step, run_steps=module.global_step,
+                           replace_shipped=by_name)
 
 def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
     """`degusta train --dry-run` for kind pretrain: sizes, tokens per example against data.max_length, steps
@@ -385,17 +237,16 @@ def dry_run(cfg: PretrainConfig, log=print, sample: int = 256) -> None:
 
     import torch
 
+    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
     from degusta_learn.finetune.collate import Collator
-    from degusta_learn.vlm.inputs import ChatFormat
-    from degusta_learn.finetune.pretrain.base import build_base
-    from degusta_learn.finetune.pretrain.module import monitor_keys
-    from degusta_learn.finetune.pretrain.tasks import PerceptionExamples
-    from degusta_learn.finetune.token_count import count_tokens, refuse_over_budget, token_summary
+    from degusta_learn.finetune.config import ModelConfig
     from degusta_learn.finetune.dry_run import meta_model, vlm_memory
     from degusta_learn.finetune.lora import LoraConfig
-    from degusta_learn.finetune.config import ModelConfig
-    from degusta_learn.render.grid import Grid
-    from degusta_learn.dryrun import dry_run_trainer_lines, print_dry_run
+    from degusta_learn.finetune.token_count import count_tokens, refuse_over_budget, token_summary
+    from degusta_learn.pretrain.base import build_base
+    from degusta_learn.pretrain.module import monitor_keys
+    from degusta_learn.pretrain.tasks import PerceptionExamples
+    from degusta_learn.vlm.inputs import ChatFormat
 
     catalog, tables, root = catalog_and_tables(cfg.dataset)
     grid = Grid(cfg.data.grid.rows, cfg.data.grid.cols)

@@ -1,6 +1,6 @@
 """A domain tokenizer for small VLMs trained here: answer literals, object ids and grid cells as single tokens.
 
-The tiny test models use a plain byte-level BPE (`tiny.train_tokenizer`), which spends ~30 tokens on one
+The tiny test models use a plain byte-level BPE (`random_models.common.train_tokenizer`), which spends ~30 tokens on one
 answer item. A model that must *learn* the task on a CPU should spend its steps on decisions, not on
 spelling punctuation, so this tokenizer
 
@@ -36,8 +36,7 @@ def answer_literals() -> list[str]:
 
 def perception_corpus(n: int = 300, seed: int = 0) -> list[str]:
     """Texts of the perception questions (pretrain/tasks.py) with varied names, types and numbers."""
-    from degusta_learn.finetune.pretrain.tasks import (describe_question, gomo_question, list_question,
-                                                      locate_question)
+    from degusta_learn.pretrain.tasks import describe_question, gomo_question, list_question, locate_question
 
     rng = random.Random(seed)
     types = ["cup", "fork", "knife", "plate", "spoon"]
@@ -56,7 +55,7 @@ def domain_tokenizer(special_tokens: list[str], vocab_size: int = 2048):
     """Train the domain tokenizer (see the module docstring); special tokens get the first ids."""
     from tokenizers import AddedToken, Regex, Tokenizer, decoders, models, pre_tokenizers, trainers
 
-    from degusta_learn.vlm.tiny import task_corpus
+    from degusta_learn.vlm.random_models.common import task_corpus
 
     tok = Tokenizer(models.BPE())
     tok.pre_tokenizer = pre_tokenizers.Sequence([

@@ -1,14 +1,7 @@
-"""Zero-shot visual prompting (the DegustaBot methods louma, logma, mouma, mogma).
+"""Zero-shot visual prompting (the DegustaBot methods louma, logma, mouma, mogma) against a VLM.
 
-prompt.py builds the prompts, answers.py parses answers (never executing them), aggregate.py combines n
-sampled answers into one placement list, backends/ talks to the VLMs, runner.py is the predict method
-(cache, concurrency, retries, cost ledger). See docs/prompting.md.
+runner.py is the predict method (cache, concurrency, retries, cost ledger), backends/ talks to the VLMs (OpenAI-
+compatible servers, Anthropic, Gemini, a local `hf` model, replay), cache.py, costs.py and estimate.py keep what was
+asked and what it cost. The task contract the methods share with fine-tuning (prompts, the answer format and its
+parser, the grammar, aggregation) is `degusta_learn.task`. See docs/prompting.md.
 """
-
-from degusta_learn.prompting.answers import (
-    Answer, AnswerItem, AnswerParseError, answer_items, answer_kind, format_answer, parse_answer, read_answer,
-)
-from degusta_learn.prompting.prompt import ImagePart, Prompt, build_prompt
-
-__all__ = ["Answer", "AnswerItem", "AnswerParseError", "ImagePart", "Prompt", "answer_items", "answer_kind",
-           "build_prompt", "format_answer", "parse_answer", "read_answer"]

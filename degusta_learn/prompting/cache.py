@@ -32,7 +32,7 @@ from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import BackendConfig, Completion, redact
-from degusta_learn.prompting.prompt import ImagePart, Prompt
+from degusta_learn.task.prompt import ImagePart, Prompt
 
 APPLICATION_ID = 0x44475343  # "DGSC": PRAGMA application_id of a degusta response cache
 _SCHEMA = ("CREATE TABLE IF NOT EXISTS responses (key TEXT PRIMARY KEY, episode TEXT, text TEXT NOT NULL, "
@@ -180,7 +180,7 @@ class ResponseCache:
                 return {}
             rows = self._db.execute(f"SELECT key, text, input_tokens, output_tokens FROM responses "
                                     f"WHERE key IN ({marks})", keys).fetchall()
-        return {k: Completion(text=t if isinstance(t, str) else str(t), input_tokens=_int(i), output_tokens=_int(o))
+        return {k: Completion(text=t if isinstance(t, str) else str(t), input_tokens=stored_count(i), output_tokens=stored_count(o))
                 for k, t, i, o in rows}
 
     def put(self, key: str, completion: Completion, episode: str | None = None) -> None:
@@ -191,7 +191,7 @@ class ResponseCache:
         if self._db is None or self.readonly or not items:
             return
         now = time.time()
-        rows = [(key, episode, redact(_text(c.text)), _int(c.input_tokens), _int(c.output_tokens), now) for key, c in items]
+        rows = [(key, episode, redact(stored_text(c.text)), stored_count(c.input_tokens), stored_count(c.output_tokens), now) for key, c in items]
         with self._lock:
             if self._db is None:  # closed by an interrupted run: a request still in flight then is not kept
                 return
@@ -217,7 +217,7 @@ class ResponseCache:
                 self._db = None
 
 
-def _text(v) -> str:
+def stored_text(v) -> str:
     """Answer text as stored: a str that is valid UTF-8 (lone surrogates from a JSON escape become '?')."""
     if not isinstance(v, str):
         v = "" if v is None else str(v)
@@ -228,6 +228,6 @@ def _text(v) -> str:
         return v.encode("utf-8", "replace").decode("utf-8")
 
 
-def _int(v) -> int | None:
+def stored_count(v) -> int | None:
     """A token count as stored: a non-negative int below 2**62, else None (unknown)."""
     return v if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 62 else None

@@ -16,10 +16,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from degusta_learn.prompting.answers import answer_items, format_answer
 from degusta_learn.prompting.cache import ResponseCache
 from degusta_learn.prompting.costs import CHARS_PER_TOKEN, cost
 from degusta_learn.scene import Dataset
+from degusta_learn.task.answer_format import answer_items, format_answer
 
 PAPER_ANCHOR = ("paper anchor, GPT-4o, one 4-context experiment, n=5: 8,035 in + 6,250 out = 14,285 tokens, "
                 "USD 0.15 at 2024 prices")

@@ -45,21 +45,28 @@ from pathlib import Path
 from tqdm import tqdm
 
 from degusta_learn.errors import DegustaError, Terminated
-from degusta_learn.fileio import MAX_LINE_BYTES, atomic_write_json, read_json, refuse_overwriting_inputs
+from degusta_learn.files.guard import refuse_replacing_inputs
+from degusta_learn.files.jsonio import MAX_LINE_BYTES, atomic_write_json, read_json
 from degusta_learn.methods import MethodSpec, PredictConfig
-from degusta_learn.render.grid import Grid
-from degusta_learn.prompting.aggregate import ANCHORED, Aggregation, combine, decoding_diagnostics
-from degusta_learn.prompting.answers import (
-    MAX_CHARS, AnswerParseError, answer_kind, answer_schema, is_repeat, read_answer,
-)
 from degusta_learn.prompting.backends.base import (
-    BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact, redact_json,
+    BackendConfig,
+    BackendError,
+    Completion,
+    backend_class,
+    backend_config,
+    make_backend,
+    redact,
+    redact_json,
 )
 from degusta_learn.prompting.cache import ResponseCache, sample_keys
 from degusta_learn.prompting.costs import CHARS_PER_TOKEN, BudgetExceeded, Ledger, cost
 from degusta_learn.prompting.estimate import estimate_run, output_tokens_per_sample, print_estimate
-from degusta_learn.prompting.prompt import IMAGE_FORMATS, Prompt, build_prompt
+from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Dataset, Episode, Prediction
+from degusta_learn.task.aggregate import ANCHORED, Aggregation, combine, decoding_diagnostics
+from degusta_learn.task.answer_format import answer_schema
+from degusta_learn.task.answers import MAX_CHARS, AnswerParseError, answer_kind, is_repeat, read_answer
+from degusta_learn.task.prompt import IMAGE_FORMATS, Prompt, build_prompt
 
 LEDGER_MARK = "degusta zero-shot ledger"
 """The `kind` of every ledger.json the runner writes: only such a file (or one with the keys of ledgers written
@@ -87,7 +94,7 @@ class ZeroShotConfig(PredictConfig):
     n: int = 5
     """Sampled answers per episode, aggregated (the paper: 5)."""
     aggregation: Aggregation = "steps"
-    """How the n answers become one plan (prompting/aggregate.py): steps, the paper's (per step the mode type and
+    """How the n answers become one plan (task/aggregate.py): steps, the paper's (per step the mode type and
     id, the mode length); votes, the objects most answers name, as many as the median answer's length;
     greedy_votes, one more answer at temperature 0 (the greedy one) lengthened to the samples' median length by
     their most named objects it lacks; greedy_votes_pooled, the same objects, the greedy answer's each placed from
@@ -154,7 +161,7 @@ class _Unanswered(Exception):
 _CUT = "\n[degusta: answer cut here; {n} characters in all, the first {keep} kept]"
 _CUT_PATTERN = re.compile(r"\n\[degusta: answer cut here; (\d+) characters in all, the first (\d+) kept\]\Z")
 LINE_BUDGET = MAX_LINE_BYTES // 2
-"""The most bytes one prediction's JSON line may take (half what `read_predictions` reads, fileio.MAX_LINE_BYTES):
+"""The most bytes one prediction's JSON line may take (half what `read_predictions` reads, jsonio.MAX_LINE_BYTES):
 past it the stored answers are cut further and the item errors listed are capped (`diagnostics.line_cut`)."""
 
 
@@ -179,7 +186,7 @@ def _sanitize(got) -> list[Completion]:
     from a server or a buggy backend becomes text that fails to parse, never an exception later). An answer of
     more than answers.MAX_CHARS characters (more than the parser reads) is cut to its first MAX_CHARS with a note
     of its length (`cut_answer`) here, before the cache, the predictions or anything else holds it."""
-    from degusta_learn.prompting.cache import _int, _text
+    from degusta_learn.prompting.cache import stored_count, stored_text
 
     if not isinstance(got, (list, tuple)):
         raise BackendError(f"the backend returned {type(got).__name__}, not a list of answers")
@@ -189,8 +196,8 @@ def _sanitize(got) -> list[Completion]:
         text = getattr(c, "text", None)
         if isinstance(text, str) and len(text) > MAX_CHARS:
             text = cut_answer(text)
-        out.append(Completion(text=_text(text), input_tokens=_int(getattr(c, "input_tokens", None)),
-                              output_tokens=_int(getattr(c, "output_tokens", None)),
+        out.append(Completion(text=stored_text(text), input_tokens=stored_count(getattr(c, "input_tokens", None)),
+                              output_tokens=stored_count(getattr(c, "output_tokens", None)),
                               decoding=decoding if isinstance(decoding, dict) else None))
     return out
 
@@ -198,7 +205,7 @@ def _sanitize(got) -> list[Completion]:
 def fit_line(pred: Prediction, budget: int = LINE_BUDGET) -> Prediction:
     """`pred` with diagnostics small enough that its JSON line takes at most `budget` bytes, so the predictions
     file is always one `read_predictions` reads (many samples of long answers, escaped to 6-12 bytes a character,
-    could pass fileio.MAX_LINE_BYTES): first the item errors listed are capped at 100 (their count stays), then
+    could pass jsonio.MAX_LINE_BYTES): first the item errors listed are capped at 100 (their count stays), then
     every stored answer is cut shorter (`cut_answer`), a quarter each round; `diagnostics.line_cut` says what was
     cut. Scores never change: the answers were parsed before."""
     size = len(json.dumps(pred.to_json()))
@@ -299,11 +306,11 @@ class ZeroShotRun:
         """Refuse, before any request, a run whose outputs would destroy an input or a user's file: the
         predictions `out` may not be the response cache or the ledger, the cache may not be the ledger,
         and an existing ledger.json beside `out` must be a degusta ledger (LEDGER_MARK or its keys)."""
-        refuse_overwriting_inputs(self.out, [("the response cache", self.cache_path),
-                                             ("the ledger.json the run writes beside it", self.ledger_path)])
+        refuse_replacing_inputs(self.out, [("the response cache", self.cache_path),
+                                           ("the ledger.json the run writes beside it", self.ledger_path)])
         if self.cache_path is not None:
-            refuse_overwriting_inputs(self.cache_path, [("the ledger.json the run writes beside `out`",
-                                                          self.ledger_path)], key="cache")
+            refuse_replacing_inputs(self.cache_path, [("the ledger.json the run writes beside `out`",
+                                                        self.ledger_path)], key="cache")
         path = self.ledger_path
         if (path.exists() or path.is_symlink()) and not is_degusta_ledger(path):
             raise DegustaError(f"{path}: exists and is not a ledger degusta wrote (no {LEDGER_MARK!r} mark or "
@@ -625,7 +632,7 @@ def run_zeroshot(cfg: ZeroShotConfig, ds: Dataset, episodes: list[Episode]) -> l
         backend_class(cfg.backend.name).check_run(cfg.backend, ds, episodes, cfg.image_size)
         print_estimate(cfg, estimate_run(run, episodes))
         return None
-    from degusta_learn.locks import hold
+    from degusta_learn.files.locks import hold
 
     with hold(run.ledger_path, "zero-shot ledger"):  # a second run writing the same ledger and predictions: refused
         return run.run(episodes)

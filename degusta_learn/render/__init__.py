@@ -10,7 +10,13 @@ See docs/render.md for the conventions and pictures.
 """
 
 from degusta_learn.render.grid import (
-    DIRECTIONS, Grid, as_grid, circular_mean, direction_to_rotation, quantization_rmsd, rotation_to_direction,
+    DIRECTIONS,
+    Grid,
+    as_grid,
+    circular_mean,
+    direction_to_rotation,
+    quantization_rmsd,
+    rotation_to_direction,
 )
 from degusta_learn.render.lifting import LIFTINGS, METHODS, Renderer, method_liftings, oal_text, order_text
 

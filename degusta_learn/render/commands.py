@@ -14,7 +14,7 @@ and target trial are given (the same episode `degusta predict` sees):
     objects.json         the catalog as JSON text, OaL (louma/logma)
     order.txt            one placement-order line per context image (when the context is not empty)
 
-Everything is rendered in memory first and then written as one folder (degusta_learn.outdir): the
+Everything is rendered in memory first and then written as one folder ((`files.folders`)): the
 files land in a temporary folder beside `out` that is swapped in whole, so a bad input or a failure while
 writing leaves `out` as it was (never a mix of old and new files). A folder that also holds files
 `render` does not write keeps them; the episode files of a previous render are replaced.
@@ -28,12 +28,12 @@ from pathlib import Path
 from PIL import Image
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_bytes, check_output_file
-from degusta_learn.outdir import OutputKind, check_target, refuse_replacing_inputs, write_folder
+from degusta_learn.files.atomic import atomic_write_bytes
+from degusta_learn.files.folders import OutputKind, check_target, write_folder
+from degusta_learn.files.guard import check_output_file, refuse_replacing_inputs
 from degusta_learn.render.grid import Grid
 from degusta_learn.render.lifting import Renderer, method_liftings, oal_text, order_text
 from degusta_learn.scene import Dataset, load_dataset, make_episodes
-
 
 EPISODE_FILES = OutputKind("rendered episode", ("final_state_*.png", "initial_state_*.png", "objects_*.png",
                                                 "objects.json", "order.txt"))
@@ -85,7 +85,7 @@ def render_episode(dataset: Dataset | str | Path, participant: str, target: int,
     files = {name: png_bytes(image) for name, image in images.items()}
     files.update({name: content.encode("utf-8") for name, content in texts.items()})
     check_target(out, EPISODE_FILES)
-    refuse_replacing_inputs(out, EPISODE_FILES, datasets=[ds.root], writes=list(files), key="--out")
+    refuse_replacing_inputs(out, kind=EPISODE_FILES, datasets=[ds.root], writes=list(files), key="--out")
     with write_folder(out, EPISODE_FILES) as tmp:
         for name, data in files.items():
             (tmp / name).write_bytes(data)
@@ -105,7 +105,7 @@ def render_catalog(dataset: Dataset | str | Path, out: str | Path, size: int = 4
         raise DegustaError(f"--out: {out} exists and is not a PNG image; it is left untouched: remove it yourself "
                            "or choose another path")
     data = png_bytes(Renderer.for_dataset(ds, size).catalog_sheet())
-    atomic_write_bytes(out, data)  # an unwritable path is a DegustaError naming it (fileio.atomic_open)
+    atomic_write_bytes(out, data)  # an unwritable path is a DegustaError naming it (files.atomic.atomic_open)
     return out
 
 

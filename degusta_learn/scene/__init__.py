@@ -1,5 +1,6 @@
 """The scene model (numpy only): catalog, tables, arrangements, episodes and the dataset format."""
 
+from degusta_learn.names import CONTEXT_LENGTHS, SPLITS
 from degusta_learn.scene.catalog import (
     COLORS,
     MATCH_FEATURES,
@@ -11,8 +12,13 @@ from degusta_learn.scene.catalog import (
     default_catalog,
     object_size,
 )
-from degusta_learn.scene.dataset import Dataset, load_dataset, parse_placements, save_dataset, validate_dataset
-from degusta_learn.names import CONTEXT_LENGTHS, SPLITS
+from degusta_learn.scene.dataset import (
+    Dataset,
+    load_dataset,
+    parse_placements,
+    save_dataset,
+    validate_dataset,
+)
 from degusta_learn.scene.episodes import (
     make_episodes,
     participants_in,

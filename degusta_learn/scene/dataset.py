@@ -35,22 +35,24 @@ from pathlib import Path
 import numpy as np
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import (
-    atomic_write_json,
-    atomic_write_jsonl,
-    file_sha256,
-    path_problem,
-    read_json,
-    read_jsonl,
-    shown_path,
-    stat_tree,
-)
+from degusta_learn.files.identity import file_sha256, stat_tree
+from degusta_learn.files.jsonio import atomic_write_json, atomic_write_jsonl, read_json, read_jsonl
+from degusta_learn.files.paths import path_problem, shown_path
 from degusta_learn.scene.catalog import COLORS, MATERIALS, TYPES, Catalog, CatalogObject
 from degusta_learn.scene.tables import Table
 from degusta_learn.scene.types import Arrangement, Placement, Rating
 from degusta_learn.scene.validate import (
-    MAX_ID, MAX_TRIAL, Where, check_picture, file_inside, get, in_vocabulary, printable_text, relative_path,
-    require_mapping, unit_interval,
+    MAX_ID,
+    MAX_TRIAL,
+    Where,
+    check_picture,
+    file_inside,
+    get,
+    in_vocabulary,
+    printable_text,
+    relative_path,
+    require_mapping,
+    unit_interval,
 )
 
 DEFAULT_MIN_OBJECTS = 3

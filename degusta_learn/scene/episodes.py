@@ -20,8 +20,9 @@ import numpy as np
 
 from degusta_learn.config import check_seed
 from degusta_learn.errors import DegustaError
+from degusta_learn.files.guard import check_output_file
+from degusta_learn.files.jsonio import atomic_write_jsonl, read_jsonl
 from degusta_learn.names import SPLITS
-from degusta_learn.fileio import atomic_write_jsonl, check_output_file, read_jsonl
 from degusta_learn.scene.dataset import Dataset
 from degusta_learn.scene.types import TASKS, Episode
 from degusta_learn.scene.validate import MAX_TRIAL, Where, get, require_mapping

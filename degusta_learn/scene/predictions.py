@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_jsonl, read_jsonl
+from degusta_learn.files.jsonio import atomic_write_jsonl, read_jsonl
 from degusta_learn.scene.catalog import Catalog
 from degusta_learn.scene.dataset import parse_placements
 from degusta_learn.scene.types import Episode, Prediction

@@ -7,7 +7,7 @@ Usage:
     from degusta_learn.synth import generate_dataset
     generate_dataset("naturalistic", "data/naturalistic", seed=0)
 
-The folder is built in a temporary sibling folder and swapped into place (degusta_learn.outdir), so a
+The folder is built in a temporary sibling folder and swapped into place ((`files.folders`)), so a
 reader never sees a half written dataset and a failed or killed run leaves the previous folder intact
 (a killed run's hidden temp folder is removed by the next run). `--overwrite` replaces only a dataset
 this tool generated (nothing foreign inside). The same seed gives byte-identical files.
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from degusta_learn.config import check_seed
 from degusta_learn.errors import DegustaError
-from degusta_learn.outdir import OutputKind, write_folder
+from degusta_learn.files.folders import OutputKind, write_folder
 from degusta_learn.scene import save_dataset, write_episodes
 from degusta_learn.synth.naturalistic import naturalistic_with_styles
 from degusta_learn.synth.simulated import simulated_with_styles

@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from degusta_learn.config import check_seed
-from degusta_learn.scene.dataset import validate_dataset
 from degusta_learn.scene import Arrangement, Dataset, default_catalog, default_tables
+from degusta_learn.scene.dataset import validate_dataset
 from degusta_learn.synth.ratings import simulate_rating
 from degusta_learn.synth.realize import MIN_OBJECTS, sample_arrangement, taste_weights
 from degusta_learn.synth.style import Style

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json, read_json
+from degusta_learn.files.jsonio import atomic_write_json, read_json
 
 STYLES_FILE = "latent_styles.json"
 

@@ -26,7 +26,7 @@ refused the free pick. So the sampler records, per sequence,
 - `repeat_stop` (`on_repeat="stop"`): the free pick named again an object an earlier item had placed
   (`AnswerGrammar.repeats`), which the grammar refuses. A small model that has listed what it sees starts
   over; forced onto the next unused id it would go on inventing objects until the token budget runs out
-  (measured: 16-19 items where the free answer had 5, docs/tiny_base.md point 18). So the sequence stops
+  (measured: 16-19 items where the free answer had 5). So the sequence stops
   there and `generate` keeps the items before the repeat (the answer ends after its last complete item).
   (`on_repeat: skip`, generate's default, gives the sampler a grammar that allows the repeat instead:
   `AnswerGrammar.allowing_repeats`);
@@ -54,7 +54,7 @@ import weakref
 import torch
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.vlm.grammar import AnswerGrammar
+from degusta_learn.task.grammar import AnswerGrammar
 
 _TRIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 """tokenizer -> {(alphabet, vocabulary size): trie}; an entry goes when its tokenizer does."""

@@ -21,8 +21,8 @@ What decoding did is recorded in each `Completion.decoding`:
   "skip" (the default) lets the model write it (`AnswerGrammar.allowing_repeats`) and go on, and the answer
   reader drops it, so the answer is the free answer's objects, each once; "stop" ends the answer there
   (`repeat_stop`, see `constrain.Sampler`), keeping the items before it; "next" lets the grammar force the
-  next-best unused id (a small model then invents objects until the budget runs out; docs/tiny_base.md,
-  points 18 and 30); "substitute" decodes as "skip" (the model's own tokens), then gives each repeated item
+  next-best unused id (a small model then invents objects until the budget runs out);
+  "substitute" decodes as "skip" (the model's own tokens), then gives each repeated item
   placed elsewhere than the item it repeats the best id the model scored at that step that no item names (an
   item repeating id and places, a loop, is dropped as with "skip"; `substitute_repeats`; `substituted`:
   [item, named id, given id or None] per repeated item; the model's own text is the answer's `free_text`). The
@@ -35,7 +35,7 @@ What decoding did is recorded in each `Completion.decoding`:
 (the hf backend's `max_tokens: auto`).
 
 Example:
-    model, processor = load_vlm("checkpoints/tiny/idefics3", adapter="checkpoints/tiny_lora/adapter")
+    model, processor = load_vlm("runs/tiny/idefics3", adapter="runs/tiny_lora/adapter")
     grammar = AnswerGrammar("grid", ds.catalog, Grid(8, 8))
     completions = generate_answers(model, processor, prompt, n=5, temperature=1.0, max_new_tokens=256,
                                    constrained=True, grammar=grammar, free_pass=True)
@@ -135,7 +135,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
     """
     from transformers import LogitsProcessorList
 
-    from degusta_learn.prompting.prompt import Completion
+    from degusta_learn.task.prompt import Completion
     from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
 
     if constrained and grammar is None:
@@ -302,7 +302,7 @@ def answer_token_budget(tokenizer, ds, kind: str, grid=None, grammar=None, margi
         {"max_new_tokens": budget, "answer_max": longest answer, "answer_mean": mean, "answers": count,
          "close_reserve": tokens reserved for closing (0 without grammar)}.
     """
-    from degusta_learn.prompting.answers import answer_items, format_answer
+    from degusta_learn.task.answer_format import answer_items, format_answer
 
     if not ds.arrangements:
         raise DegustaError("max_tokens: auto: the dataset has no arrangements to size the answers from")
@@ -316,8 +316,7 @@ def answer_token_budget(tokenizer, ds, kind: str, grid=None, grammar=None, margi
 
 def parse_rate(texts: list[str], kind: str, catalog, grid) -> float:
     """Fraction of texts that `parse_answer` reads (the number unconstrained runs report)."""
-    from degusta_learn.prompting import AnswerParseError, parse_answer
-
+    from degusta_learn.task.answers import AnswerParseError, parse_answer
     ok = 0
     for t in texts:
         try:

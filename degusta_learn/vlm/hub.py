@@ -120,8 +120,14 @@ def _shipped_hint(name: str, shipped: list[str]) -> str:
 def download(repo_id: str, key: str, weights: bool = True, local_files_only: bool = False) -> Path:
     """The cached snapshot folder of hub model `repo_id`, downloaded into the standard cache when missing."""
     from huggingface_hub import errors, snapshot_download
-    from huggingface_hub.errors import (GatedRepoError, HFValidationError, HfHubHTTPError, LocalEntryNotFoundError,
-                                        RepositoryNotFoundError, RevisionNotFoundError)
+    from huggingface_hub.errors import (
+        GatedRepoError,
+        HfHubHTTPError,
+        HFValidationError,
+        LocalEntryNotFoundError,
+        RepositoryNotFoundError,
+        RevisionNotFoundError,
+    )
 
     incomplete = getattr(errors, "IncompleteSnapshotError", ())  # a LocalEntryNotFoundError; newer hubs only
 

@@ -7,7 +7,7 @@ when missing, unless `HF_HUB_OFFLINE=1`; every problem is one line naming the co
 
 Usage:
     model, processor = load_vlm("tiny_vlm_base")
-    model, processor = load_vlm("HuggingFaceTB/SmolVLM-256M-Instruct", adapter="checkpoints/run/adapter")
+    model, processor = load_vlm("HuggingFaceTB/SmolVLM-256M-Instruct", adapter="runs/run/adapter")
 """
 
 from __future__ import annotations
@@ -168,7 +168,7 @@ def load_adapter(model, adapter: str | Path, trainable: bool = False, key: str =
     path = resolve_adapter(adapter, key)
     if not (path / "adapter_config.json").is_file():
         raise DegustaError(f"{key}: {path} has no adapter_config.json (expected a folder written by "
-                           "PeftModel.save_pretrained, e.g. checkpoints/<run>/adapter)")
+                           "PeftModel.save_pretrained, e.g. runs/<run>/adapter)")
     check_json_files(path, key)
     # the ranks against the adapter's weights, its regexes resolved to module names with a time limit (vlm/bounds.py)
     config = check_adapter(path, [name for name, _ in model.named_modules()], key)

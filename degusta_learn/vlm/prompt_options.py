@@ -1,7 +1,7 @@
 """How a prompt is cut down for a small VLM: `PromptOptions` and `adapt_prompt`.
 
 Used wherever a local VLM is prompted: fine-tuning examples (`finetune/data.py`, the perception tasks of
-`finetune/pretrain/tasks.py`) and the hf backend, which re-applies the options saved beside an adapter
+`pretrain/tasks.py`) and the hf backend, which re-applies the options saved beside an adapter
 (`degusta_finetune.json`), so a fine-tuned model is always prompted the way it was trained:
 - `include`: which image groups to send ("objects" = GoMO sheets, "context" = final_state_k, "target");
 - `compose`: each listed group ("objects", "context") drawn as one labelled canvas, or "all" images in
@@ -61,8 +61,7 @@ def image_group(name: str) -> str:
 
 def adapt_prompt(prompt, options: PromptOptions):
     """A copy of `prompt` with excluded image groups removed and composed groups drawn as one canvas."""
-    from degusta_learn.prompting import ImagePart, Prompt
-
+    from degusta_learn.task.prompt import ImagePart, Prompt
     parts = list(prompt.parts)
     if options.context_answers and "context" in options.include:
         parts = _with_context_answers(parts, prompt.context_answers)
@@ -91,8 +90,7 @@ def adapt_prompt(prompt, options: PromptOptions):
 def _with_context_answers(parts: list, answers: dict[str, str]) -> list:
     """`parts` with each context image's answer text after its placement-order line (`build_prompt` puts that
     line right after the image); unchanged if the lines are already there."""
-    from degusta_learn.prompting import ImagePart
-
+    from degusta_learn.task.prompt import ImagePart
     lines = {name: f"The objects in {name}, written as an answer: {text}" for name, text in answers.items()}
     if set(lines.values()) & {p for p in parts if isinstance(p, str)}:
         return parts  # already there (a prompt adapted before)
@@ -110,8 +108,7 @@ def _with_context_answers(parts: list, answers: dict[str, str]) -> list:
 
 def _compose(parts: list, groups: set[str], label: str) -> list:
     """Replace the images of `groups` (and their "name:" labels) by one titled canvas at the first one."""
-    from degusta_learn.prompting import ImagePart
-
+    from degusta_learn.task.prompt import ImagePart
     out: list = []
     members: list = []
     slot = None

@@ -5,7 +5,7 @@
   groups and canvases, image budget, the size the lifted images were rendered at) and what it was trained
   on (the dataset's path and fingerprint, `scene.dataset.dataset_identity`; the participant split seed;
   the train and validation participants; the context lengths).
-- `degusta_base.json` (`BaseRecord`), written by the pretrain export (`finetune/pretrain/export.py`): the
+- `degusta_base.json` (`BaseRecord`), written by the pretrain export (`pretrain/export.py`): the
   architecture, image budget, grid and prompt layout of a base pretrained by degusta, and its training facts.
 
 `write_record` is the only writer and `read_record` the only reader (strict JSON, every key and type
@@ -23,7 +23,7 @@ command rewrites it. A base record without a version is format 1, the current on
 
 Example:
     write_record(out, FinetuneRecord(base_model=..., method="mogma", ...))
-    record = read_record(locate_record("checkpoints/finetune_tiny_cpu/adapter", "checkpoints/tiny/idefics3"))
+    record = read_record(locate_record("runs/finetune_tiny_cpu/adapter", "runs/tiny/idefics3"))
     record.check_prediction(dataset_identity(ds), {e.participant for e in episodes}, render_size=224)
 """
 
@@ -37,7 +37,7 @@ from typing import Any, ClassVar, Literal
 
 from degusta_learn.config import bounded, from_dict
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json, read_json
+from degusta_learn.files.jsonio import atomic_write_json, read_json
 from degusta_learn.render.grid import Grid
 from degusta_learn.vlm.prompt_options import PromptOptions
 
@@ -218,14 +218,14 @@ def read_record(path: str | os.PathLike) -> FinetuneRecord | BaseRecord:
 
 def _check_architecture(arch: dict, path: Path, remedy: str) -> None:
     """The architecture's sizes within the bounds of the pretrain config that made it (`BaseArchitecture`)."""
-    from degusta_learn.config import _check_bounds
-    from degusta_learn.finetune.pretrain.base import BaseArchitecture
+    from degusta_learn.config import check_bounds
+    from degusta_learn.vlm.random_models.fastvlm import BaseArchitecture
 
     for f in dataclasses.fields(BaseArchitecture):
         bounds = f.metadata.get("bounds")
         if bounds is not None and f.name in arch:
             try:
-                _check_bounds(arch[f.name], bounds, str(path), f"architecture.{f.name}")
+                check_bounds(arch[f.name], bounds, str(path), f"architecture.{f.name}")
             except DegustaError as e:
                 raise DegustaError(f"{e}; {remedy}") from None
 

@@ -3,7 +3,7 @@ transformer over the slots decides which the target gets, with which object, whe
 (see slot_model.py for the architecture and why).
 
 Usage:
-    degusta train --config configs/learned_cpu.yaml              # -> checkpoints/learned_cpu/
+    degusta train --config configs/learned_cpu.yaml              # -> runs/learned_cpu/
     degusta predict --config configs/learned_predict.yaml        # -> predictions.jsonl
 
 Registered as TRAINERS["learned"] (`TRAINER`) and METHODS["learned"] (`METHOD`).

@@ -33,7 +33,8 @@ from typing import ClassVar
 
 import lightning as L
 import numpy as np
-from torch.utils.data import DataLoader, Dataset as TorchDataset
+from torch.utils.data import DataLoader
+from torch.utils.data import Dataset as TorchDataset
 
 from degusta_learn.baselines.learned.features import onto_surface
 from degusta_learn.baselines.learned.slots import collate_slots

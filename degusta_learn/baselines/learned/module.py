@@ -5,7 +5,7 @@ same loss (`val/loss`), and a full prediction of every episode
 scored with `degusta_learn.metrics.score_prediction` exactly as `degusta evaluate` would — logged as
 `val/rmsd`, `val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`,
 `val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Under DDP each rank scores its share of
-the episodes and the per-episode rows are gathered, each episode counted once (`trainer.gather_unique_rows`),
+the episodes and the per-episode rows are gathered, each episode counted once (`training.gather_unique_rows`),
 so the metrics equal a single-process validation's; `val/loss` is the mean of the ranks' batch means.
 
 Hyperparameters are saved as plain data (model config, optimizer config, vocabulary, the population rows
@@ -30,7 +30,7 @@ from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
 from degusta_learn.metrics import score_prediction
 from degusta_learn.optim import OptimConfig, lr_schedule
 from degusta_learn.scene import Placement
-from degusta_learn.trainer import gather_unique_rows
+from degusta_learn.training import gather_unique_rows
 
 KIND = "learned"
 LEARNED_OPTIM = OptimConfig(lr=1e-3, weight_decay=0.01, warmup_steps=100)  # the learned model's defaults

@@ -5,7 +5,7 @@
 (e.g. a fine-tuning run), is refused with a DegustaError naming the file.
 
 Usage:
-    degusta predict --config configs/learned_predict.yaml --set checkpoint=checkpoints/learned_cpu --set context=2
+    degusta predict --config configs/learned_predict.yaml --set checkpoint=runs/learned_cpu --set context=2
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ class LearnedPredictConfig(PredictConfig):
     def __post_init__(self):
         super().__post_init__()
         if not self.checkpoint:
-            raise DegustaError("checkpoint: required (a run folder such as checkpoints/learned_cpu, or a .ckpt)")
+            raise DegustaError("checkpoint: required (a run folder such as runs/learned_cpu, or a .ckpt)")
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -112,7 +112,7 @@ def predict_episodes(model: SlotModel, ds: Dataset, episodes: list[Episode], pop
 
 def run(cfg: LearnedPredictConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
     """MethodSpec.run of method `learned` (on `cfg.num_threads` torch threads, restored after)."""
-    from degusta_learn.trainer import torch_threads
+    from degusta_learn.training import torch_threads
 
     with torch_threads(cfg.num_threads):
         return _run(cfg, ds, episodes)

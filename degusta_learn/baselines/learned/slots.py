@@ -32,10 +32,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from degusta_learn.baselines.heuristic import PopulationModel
 from degusta_learn.baselines.learned.align import align_context
 from degusta_learn.baselines.learned.features import Vocab, table_geometry
 from degusta_learn.errors import DegustaError
-from degusta_learn.baselines.heuristic import PopulationModel
 from degusta_learn.scene import Arrangement, Dataset, Placement, Table
 from degusta_learn.synth.geometry import to_relative, to_table
 

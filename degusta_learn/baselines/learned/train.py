@@ -1,7 +1,7 @@
 """`degusta train` for the learned arrangement model (config `kind: learned`).
 
 Loads the dataset, builds the vocabulary, the LightningModule and the DataModule, and hands them to the
-shared `degusta_learn.trainer.fit` (run folder `checkpoints/<run>/` with config.yaml, last.ckpt, best.ckpt
+shared `degusta_learn.training.fit` (run folder `runs/<run>/` with config.yaml, last.ckpt, best.ckpt
 by validation RMSD, CSV + TensorBoard logs; resumes from last.ckpt).
 
 Usage:
@@ -16,7 +16,13 @@ from pathlib import Path
 
 from degusta_learn.baselines.learned.data import ArrangementDataModule, DataConfig, split_of
 from degusta_learn.baselines.learned.features import Vocab
-from degusta_learn.baselines.learned.module import KIND, LEARNED_OPTIM, LearnedModule, monitor_keys, population_pairs
+from degusta_learn.baselines.learned.module import (
+    KIND,
+    LEARNED_OPTIM,
+    LearnedModule,
+    monitor_keys,
+    population_pairs,
+)
 from degusta_learn.baselines.learned.slot_model import ModelConfig
 from degusta_learn.baselines.learned.slots import SlotEncoder, population_rows
 from degusta_learn.config import bounded, seed_field
@@ -24,7 +30,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.optim import OptimConfig
 from degusta_learn.scene import Dataset, load_dataset
 from degusta_learn.scene.dataset import dataset_identity
-from degusta_learn.trainer import TrainerConfig, fit, training_run
+from degusta_learn.training import TrainerConfig, fit, training_run
 from degusta_learn.vlm.record import TrainingData
 
 
@@ -77,8 +83,13 @@ def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> No
     (augmentations move and relabel objects but keep their number). Refuses an arrangement with more
     objects than model.max_objects (the run would fail on it mid-epoch).
     """
-    from degusta_learn.dryrun import dry_run_trainer_lines, estimate_memory, print_dry_run, transformer_activations
-    from degusta_learn.trainer import world_size
+    from degusta_learn.dryrun import (
+        dry_run_trainer_lines,
+        estimate_memory,
+        print_dry_run,
+        transformer_activations,
+    )
+    from degusta_learn.training import world_size
 
     ds = ds if ds is not None else load_dataset(cfg.dataset)
     most = max(ds.arrangements, key=lambda a: len(a.placements), default=None)
@@ -117,7 +128,7 @@ def dry_run(cfg: LearnedTrainConfig, ds: Dataset | None = None, log=print) -> No
 
 def train(cfg: LearnedTrainConfig, ds: Dataset | None = None) -> Path:
     """TrainerSpec.run of kind `learned`: train and return the run folder (seeded before the model is built)."""
-    from degusta_learn.trainer import torch_threads
+    from degusta_learn.training import torch_threads
 
     monitors = monitor_keys(cfg.data.val_contexts)
     with torch_threads(cfg.num_threads), training_run(cfg.trainer, monitors):

@@ -4,7 +4,15 @@ See base.py for what a backend declares and docs/prompting.md ("Adding a backend
 """
 
 from degusta_learn.prompting.backends.base import (
-    BACKENDS, Backend, BackendConfig, BackendError, Completion, backend_class, backend_config, make_backend, redact,
+    BACKENDS,
+    Backend,
+    BackendConfig,
+    BackendError,
+    Completion,
+    backend_class,
+    backend_config,
+    make_backend,
+    redact,
 )
 
 __all__ = ["BACKENDS", "Backend", "BackendConfig", "BackendError", "Completion", "backend_class", "backend_config",

@@ -26,11 +26,11 @@ import math
 from dataclasses import dataclass
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.answers import STRUCTURED_KEY, STRUCTURED_NAME
 from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
 from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig, retry_after
 from degusta_learn.prompting.backends.transport import fault_reason, guarded_client
-from degusta_learn.prompting.prompt import ImagePart, Prompt
+from degusta_learn.task.answers import STRUCTURED_KEY, STRUCTURED_NAME
+from degusta_learn.task.prompt import ImagePart, Prompt
 
 
 @dataclass

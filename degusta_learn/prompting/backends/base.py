@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting import costs
-from degusta_learn.prompting.prompt import Completion, Prompt
+from degusta_learn.task.prompt import Completion, Prompt
 
 BACKENDS: dict[str, str] = {
     "openai": "degusta_learn.prompting.backends.openai:OpenAIBackend",
@@ -294,7 +294,8 @@ class AnswerSchemas:
         self.grid, self.catalog, self._schemas = grid, catalog, {}
 
     def __call__(self, prompt: Prompt) -> dict:
-        from degusta_learn.prompting.answers import answer_kind, answer_schema
+        from degusta_learn.task.answer_format import answer_schema
+        from degusta_learn.task.answers import answer_kind
 
         if self.catalog is None:
             raise DegustaError("backend.structured_output: the answer schema needs the dataset catalog "

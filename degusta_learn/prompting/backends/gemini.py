@@ -23,7 +23,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, Completion, api_key
 from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig
 from degusta_learn.prompting.backends.transport import fault_reason, guarded_client, guarded_transport
-from degusta_learn.prompting.prompt import ImagePart, Prompt
+from degusta_learn.task.prompt import ImagePart, Prompt
 
 
 @dataclass

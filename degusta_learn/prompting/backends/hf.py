@@ -16,7 +16,7 @@ another `dataset` with the same participant ids) is refused, and so are images r
 than in training (`image_size`).
 
 Usage (configs/predict_hf_tiny_finetuned.yaml):
-    backend: {name: hf, model: checkpoints/tiny/idefics3, adapter: checkpoints/finetune_tiny_cpu/adapter,
+    backend: {name: hf, model: runs/tiny/idefics3, adapter: runs/finetune_tiny_cpu/adapter,
               constrained: true, device: cpu}
 """
 
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-
 import threading
 from dataclasses import dataclass
 from typing import ClassVar, Literal
@@ -32,7 +31,6 @@ from typing import ClassVar, Literal
 from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import Backend, BackendConfig
-
 
 DECODING_VERSION = 5
 """Bump when `vlm.generate`'s sampling or `vlm.grammar` changes what a seeded answer is (2: per-answer noise
@@ -161,8 +159,8 @@ class HFBackend(Backend):
                    report_unconstrained=cfg.report_unconstrained)
 
     def grammar(self, method: str):
-        from degusta_learn.vlm.grammar import AnswerGrammar
-        from degusta_learn.prompting.answers import answer_kind
+        from degusta_learn.task.answers import answer_kind
+        from degusta_learn.task.grammar import AnswerGrammar
 
         kind = answer_kind(method)
         if kind not in self._grammars:
@@ -187,15 +185,15 @@ class HFBackend(Backend):
 
     def token_budget(self, ds, method: str) -> dict:
         """`max_tokens: auto`: the budget that fits every ground-truth answer of `ds` (`answer_token_budget`)."""
-        from degusta_learn.prompting.answers import answer_kind
+        from degusta_learn.task.answers import answer_kind
         from degusta_learn.vlm.generate import answer_token_budget
 
         return answer_token_budget(self.processor.tokenizer, ds, answer_kind(method), self.grid,
                                    grammar=self.grammar(method) if self.constrained else None)
 
     def complete(self, prompt, n: int, temperature: float, max_tokens: int, seed: int | None = None) -> list:
-        from degusta_learn.vlm.prompt_options import adapt_prompt
         from degusta_learn.vlm.generate import generate_answers
+        from degusta_learn.vlm.prompt_options import adapt_prompt
 
         if self.trained_method and prompt.method != self.trained_method:
             raise DegustaError(f"method: this model was fine-tuned on {self.trained_method} prompts, the predict "

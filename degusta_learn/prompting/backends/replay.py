@@ -20,9 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import read_jsonl
+from degusta_learn.files.jsonio import read_jsonl
 from degusta_learn.prompting.backends.base import Backend, BackendConfig, Completion
-from degusta_learn.prompting.prompt import Prompt
+from degusta_learn.task.prompt import Prompt
 
 
 @dataclass

@@ -44,7 +44,7 @@ from types import SimpleNamespace
 
 MAX_REPLY_BYTES = 32 * 2**20
 """The most bytes of one reply body, on the wire and decoded (32 MiB: 1,000 times the answers of n = 5 samples at
-max_tokens 1024; well under the 64 MiB a predictions line may hold, fileio.MAX_LINE_BYTES)."""
+max_tokens 1024; well under the 64 MiB a predictions line may hold, files.jsonio.MAX_LINE_BYTES)."""
 _STEP = 1 << 16  # the most bytes one inflate step produces
 _WRITE_PIECE = 1 << 14  # a write is sent in pieces this big, each waiting at most until the deadline
 _ENCODINGS = {"gzip": 16 + zlib.MAX_WBITS, "x-gzip": 16 + zlib.MAX_WBITS, "deflate": zlib.MAX_WBITS}

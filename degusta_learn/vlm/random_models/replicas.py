@@ -27,7 +27,7 @@ Sources (architecture values are public configuration files, not weights):
 
 Tokenizers: where the real tokenizer files are at hand (`reference_dir`, SmolVLM-256M's folder, also used
 for SmolVLM-500M, whose tokenizer is the same) the replica uses them, so text token counts are exact.
-Otherwise it uses the project's offline tiny byte-level BPE (`tiny.train_tokenizer`, ~1,000 ids trained
+Otherwise it uses the project's offline tiny byte-level BPE (`common.train_tokenizer`, ~1,000 ids trained
 on the task's own texts) and keeps the published vocab_size for the embedding and LM head, so parameter
 counts and memory stay exact. What changes with the tiny tokenizer: IMAGE tokens are unchanged (set by the
 image processor: patches and merge/pixel-shuffle), but TEXT and ANSWER token counts differ from the real
@@ -35,7 +35,7 @@ tokenizer's (measured for SmolVLM-256M in benchmarks/RESULTS.md, "Full-size repl
 counts are therefore approximate in their text part.
 
 Usage:
-    from degusta_learn.vlm.replicas import build_replica
+    from degusta_learn.vlm.random_models.replicas import build_replica
     build_replica("smolvlm_256m", "/tmp/repl/smolvlm_256m",
                   reference_dir="../shared/reference-models/SmolVLM-256M-Instruct")
     # then: degusta train --config configs/finetune_smolvlm_256m.yaml --set model.name=/tmp/repl/smolvlm_256m ...
@@ -48,7 +48,7 @@ import json
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json
+from degusta_learn.files.jsonio import atomic_write_json
 
 REPLICA_VERSION = 1
 
@@ -213,13 +213,14 @@ def build_replica(name: str, out_dir: str | Path, reference_dir: str | Path | No
     atomic_write_json(out / "degusta_replica.json", {
         "replica": name, "hub_id": spec["hub_id"], "version": REPLICA_VERSION, "parameters": n, "weights": weights,
         "tokenizer": "real" if real else "tiny offline BPE (text token counts differ from the real model's)",
-        "note": "random weights, published architecture, built offline by degusta_learn.vlm.replicas"})
+        "note": "random weights, published architecture, built offline by degusta_learn.vlm.random_models.replicas"})
     return out
 
 
 def _processor(spec: dict, reference_dir, key: str):
     """(processor with the published settings, True when it carries the real tokenizer)."""
-    from degusta_learn.vlm import tiny
+    from degusta_learn.vlm.random_models import tiny
+    from degusta_learn.vlm.random_models.common import train_tokenizer, wrap_tokenizer
 
     ps = spec["processor"]
     if reference_dir is not None:
@@ -243,16 +244,21 @@ def _processor(spec: dict, reference_dir, key: str):
     if spec["family"] == "idefics3":
         from transformers import Idefics3ImageProcessor, Idefics3Processor, PreTrainedTokenizerFast
 
-        tok = tiny._wrap(tiny.train_tokenizer(tiny.IDEFICS3_SPECIAL), PreTrainedTokenizerFast, tiny.IDEFICS3_SPECIAL,
+        tok = wrap_tokenizer(train_tokenizer(tiny.IDEFICS3_SPECIAL), PreTrainedTokenizerFast, tiny.IDEFICS3_SPECIAL,
                          **tiny.IDEFICS3_ROLES)
         ip = Idefics3ImageProcessor(do_image_splitting=ps["do_image_splitting"], size=dict(ps["size"]),
                                     max_image_size=dict(ps["max_image_size"]), image_mean=ps["image_mean"],
                                     image_std=ps["image_std"], resample=ps["resample"])
         return Idefics3Processor(image_processor=ip, tokenizer=tok, image_seq_len=ps["image_seq_len"],
                                  chat_template=tiny.IDEFICS3_CHAT_TEMPLATE), False
-    from transformers import Qwen2TokenizerFast, Qwen2VLImageProcessor, Qwen2VLProcessor, Qwen2VLVideoProcessor
+    from transformers import (
+        Qwen2TokenizerFast,
+        Qwen2VLImageProcessor,
+        Qwen2VLProcessor,
+        Qwen2VLVideoProcessor,
+    )
 
-    tok = tiny._wrap(tiny.train_tokenizer(tiny.QWEN2VL_SPECIAL), Qwen2TokenizerFast, tiny.QWEN2VL_SPECIAL,
+    tok = wrap_tokenizer(train_tokenizer(tiny.QWEN2VL_SPECIAL), Qwen2TokenizerFast, tiny.QWEN2VL_SPECIAL,
                      eos_token="<|im_end|>", pad_token="<|endoftext|>", unk_token=None)
     common = dict(min_pixels=ps["min_pixels"], max_pixels=ps["max_pixels"], patch_size=ps["patch_size"],
                   merge_size=ps["merge_size"], temporal_patch_size=ps["temporal_patch_size"])

@@ -9,8 +9,8 @@ shaped like the real one. Everything is written with `save_pretrained`, so `load
 through the same Auto classes as a hub id.
 
 Usage:
-    from degusta_learn.vlm.tiny import build_tiny_idefics3
-    path = build_tiny_idefics3("checkpoints/tiny/idefics3")   # ~1 MB, a few seconds
+    from degusta_learn.vlm.random_models.tiny import build_tiny_idefics3
+    path = build_tiny_idefics3("runs/tiny/idefics3")   # ~1 MB, a few seconds
     model, processor = load_vlm(path)
 
 Sizes follow NOTES-VLM.md: vocab_size == len(tokenizer); image_token_id and pad id overridden;
@@ -20,33 +20,15 @@ image costs exactly (image_size / patch_size)^2 / scale_factor^2 tokens (+ 3 wra
 
 from __future__ import annotations
 
-import random
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.fileio import atomic_write_json
+from degusta_learn.files.jsonio import atomic_write_json
+from degusta_learn.vlm.random_models.common import set_generation_ids, train_tokenizer, wrap_tokenizer
 
 TINY_KINDS = ("idefics3", "qwen2vl")
 TINY_VERSION = 3  # bump when the tiny builders change, so stale cached folders are rebuilt
 
-# Paper prompts (appendix) and the words every answer uses: the tokenizer's training text.
-_PAPER_PROMPTS = (
-    "My preferences for setting a table are shown in the images named final_state_N.jpg. You are helping me "
-    "set the table in initial_state_1.jpg according to my preferences. What objects should I place in this "
-    "image, where should I place them, and how should they be oriented? Please list all grid cells the object "
-    "will intersect after it is placed. Give the orientation as the closest cardinal direction [N, NE, E, SE, "
-    "S, SW, W, NW] the object is pointing in after it is placed. The top of the image is N. Give your answer as "
-    "a python list formatted as follows: [{'type':object_type, 'id': object_reference_id, "
-    "'position':[grid_cell_ids], 'cardinal_direction':direction}]. Give grid_cell_ids as a list of string. "
-    "Give object_id as an integer. Include only this list in your response.",
-    "Give a position in [x,y] where each value is a number between 0 and 1. Give rotation as the number of "
-    "degrees clockwise from image north. Give your answer as a python list formatted as follows: "
-    "[{'type':object_type, 'id': object_reference_id, 'position': [x, y], 'rotation': degrees}].",
-    "The objects you can use are shown in the images named cup.jpg, fork.jpg, knife.jpg, plate.jpg, spoon.jpg, "
-    "each object marked with its id. Placement order in final_state_1.jpg: plate, fork, knife, spoon, cup.",
-)
-_TYPES = ("cup", "fork", "knife", "plate", "spoon")
-_DIRECTIONS = ("N", "NE", "E", "SE", "S", "SW", "W", "NW")
 
 IDEFICS3_SPECIAL = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<end_of_utterance>",
                     "<fake_token_around_image>", "<image>", "<global-img>",
@@ -74,66 +56,6 @@ QWEN2VL_CHAT_TEMPLATE = (
 )
 
 
-def task_corpus(n_answers: int = 400, seed: int = 0) -> list[str]:
-    """In-domain training text for the tiny tokenizers: prompts, answers, cell ids, numbers."""
-    rng = random.Random(seed)
-    cells = [f"{chr(65 + c)}{r}" for c in range(12) for r in range(1, 13)]
-    lines = list(_PAPER_PROMPTS)
-    for _ in range(n_answers):
-        items = []
-        for _ in range(rng.randint(1, 6)):
-            t = rng.choice(_TYPES)
-            pos = sorted(rng.sample(cells, rng.randint(1, 4)))
-            items.append(f"{{'type': '{t}', 'id': {rng.randint(0, 124)}, 'position': {pos}, "
-                         f"'cardinal_direction': '{rng.choice(_DIRECTIONS)}'}}")
-            items.append(f"{{'type': '{t}', 'id': {rng.randint(0, 124)}, 'position': "
-                         f"[{rng.random():.3f}, {rng.random():.3f}], 'rotation': {rng.randint(0, 359)}}}")
-        lines.append("[" + ", ".join(items) + "]")
-    lines += _prompt_texts()
-    lines.append(" ".join(str(i) for i in range(400)))
-    lines.append(" ".join(f"final_state_{i}.jpg initial_state_{i}.jpg" for i in range(1, 6)))
-    return lines
-
-
-def _prompt_texts() -> list[str]:
-    """The prompting part's own task texts and chat-template words (the bulk of every prompt)."""
-    from degusta_learn.render.grid import Grid
-    from degusta_learn.prompting.prompt import PROMPT_METHODS, task_text
-
-    lines = ["User: Assistant: system You are a helpful assistant. user assistant",
-             "These are the objects I have, one image per object type. Each object is marked with its "
-             "object_reference_id.", "objects.jpg shows the images objects_cup.jpg, objects_fork.jpg, "
-             "objects_knife.jpg side by side, each titled with its name:"]
-    for method in PROMPT_METHODS:
-        for k in (0, 1, 2, 4):
-            names = [f"final_state_{i}.jpg" for i in range(1, k + 1)]
-            lines.append(task_text(method, names, "initial_state_1.jpg", Grid(8, 8), list(_TYPES)))
-    for k in range(1, 5):
-        lines.append(f"Placement order in final_state_{k}.jpg: " + ", ".join(_TYPES[(k + i) % 5] for i in range(6)) + ".")
-    return lines * 4
-
-
-def train_tokenizer(special_tokens: list[str], vocab_size: int = 1024):
-    """A byte-level BPE (`tokenizers`) trained on `task_corpus()`; special tokens get the first ids."""
-    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
-
-    tok = Tokenizer(models.BPE())
-    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
-    tok.decoder = decoders.ByteLevel()
-    trainer = trainers.BpeTrainer(vocab_size=vocab_size, special_tokens=special_tokens, show_progress=False,
-                                  initial_alphabet=pre_tokenizers.ByteLevel.alphabet())
-    tok.train_from_iterator(task_corpus(), trainer=trainer)
-    return tok
-
-
-def _wrap(tok, cls, special: list[str], **tokens):
-    """Wrap a `tokenizers.Tokenizer` as a transformers tokenizer without token_type_ids."""
-    wrapped = cls(tokenizer_object=tok, **tokens)
-    wrapped.add_special_tokens({"additional_special_tokens": [s for s in special if s not in tokens.values()]})
-    wrapped.model_input_names = ["input_ids", "attention_mask"]
-    return wrapped
-
-
 def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: int = 4, hidden: int = 64,
                         layers: int = 2, seed: int = 0) -> Path:
     """Build and save a random-weight tiny Idefics3 (SmolVLM architecture) with its processor.
@@ -152,7 +74,7 @@ def build_tiny_idefics3(out_dir: str | Path, image_size: int = 64, patch_size: i
     """
     from transformers import PreTrainedTokenizerFast
 
-    tokenizer = _wrap(train_tokenizer(IDEFICS3_SPECIAL), PreTrainedTokenizerFast, IDEFICS3_SPECIAL,
+    tokenizer = wrap_tokenizer(train_tokenizer(IDEFICS3_SPECIAL), PreTrainedTokenizerFast, IDEFICS3_SPECIAL,
                       **IDEFICS3_ROLES)
     model, processor = idefics3(tokenizer, image_size, patch_size, 2,
                                 vision=dict(hidden_size=hidden // 2, intermediate_size=hidden, num_hidden_layers=2,
@@ -174,7 +96,12 @@ def idefics3(tokenizer, image_size: int, patch_size: int, scale_factor: int, vis
     tokens + 3 wrapper tokens. `vision` / `text` are extra Idefics3 vision / llama text config values.
     """
     import torch
-    from transformers import Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessor, Idefics3Processor
+    from transformers import (
+        Idefics3Config,
+        Idefics3ForConditionalGeneration,
+        Idefics3ImageProcessor,
+        Idefics3Processor,
+    )
 
     if image_size % patch_size or (image_size // patch_size) % scale_factor:
         raise DegustaError(f"image_size {image_size} / patch_size {patch_size} must be a whole number "
@@ -190,7 +117,7 @@ def idefics3(tokenizer, image_size: int, patch_size: int, scale_factor: int, vis
     )
     torch.manual_seed(seed)
     model = Idefics3ForConditionalGeneration(config)
-    _set_generation_ids(model, tokenizer, ids["<end_of_utterance>"], ids["<|im_end|>"])
+    set_generation_ids(model, tokenizer, ids["<end_of_utterance>"], ids["<|im_end|>"])
     image_processor = Idefics3ImageProcessor(
         do_image_splitting=False, size={"longest_edge": image_size}, max_image_size={"longest_edge": image_size})
     processor = Idefics3Processor(image_processor=image_processor, tokenizer=tokenizer,
@@ -206,12 +133,18 @@ def build_tiny_qwen2vl(out_dir: str | Path, image_size: int = 224, hidden: int =
     (image_size / 28)^2 tokens (the default 224 px: 8 x 8, enough to resolve an 8 x 8 grid). Needs torchvision (the Qwen2-VL video processor).
     """
     import torch
-    from transformers import (Qwen2TokenizerFast, Qwen2VLConfig, Qwen2VLForConditionalGeneration,
-                              Qwen2VLImageProcessor, Qwen2VLProcessor, Qwen2VLVideoProcessor)
+    from transformers import (
+        Qwen2TokenizerFast,
+        Qwen2VLConfig,
+        Qwen2VLForConditionalGeneration,
+        Qwen2VLImageProcessor,
+        Qwen2VLProcessor,
+        Qwen2VLVideoProcessor,
+    )
 
     if image_size % 28:
         raise DegustaError(f"image_size {image_size}: a tiny Qwen2-VL needs a multiple of 28")
-    tokenizer = _wrap(train_tokenizer(QWEN2VL_SPECIAL), Qwen2TokenizerFast, QWEN2VL_SPECIAL,
+    tokenizer = wrap_tokenizer(train_tokenizer(QWEN2VL_SPECIAL), Qwen2TokenizerFast, QWEN2VL_SPECIAL,
                       eos_token="<|im_end|>", pad_token="<|endoftext|>", unk_token=None)
     ids = {t: tokenizer.convert_tokens_to_ids(t) for t in QWEN2VL_SPECIAL}
     head_dim = hidden // 4
@@ -229,7 +162,7 @@ def build_tiny_qwen2vl(out_dir: str | Path, image_size: int = 224, hidden: int =
     )
     torch.manual_seed(seed)
     model = Qwen2VLForConditionalGeneration(config)
-    _set_generation_ids(model, tokenizer, ids["<|im_end|>"], ids["<|endoftext|>"])
+    set_generation_ids(model, tokenizer, ids["<|im_end|>"], ids["<|endoftext|>"])
     pixels = image_size * image_size
     image_processor = Qwen2VLImageProcessor(min_pixels=pixels, max_pixels=pixels)
     video_processor = Qwen2VLVideoProcessor(min_pixels=pixels, max_pixels=pixels)
@@ -250,11 +183,6 @@ def ensure_tiny(path: str | Path, kind: str) -> Path:
         raise DegustaError(f"model.build_tiny: {path} exists and is not a tiny model built by degusta_learn; "
                            "choose another model.name or remove the folder")
     return (build_tiny_idefics3 if kind == "idefics3" else build_tiny_qwen2vl)(path)
-
-
-def _set_generation_ids(model, tokenizer, eos_id: int, pad_id: int) -> None:
-    gc = model.generation_config
-    gc.eos_token_id, gc.pad_token_id, gc.bos_token_id = eos_id, pad_id, tokenizer.bos_token_id
 
 
 def _save(out_dir, model, processor, kind: str) -> Path:

@@ -30,7 +30,9 @@ items under the same item policy, and still reads a free-text list (a server tha
 Example:
     items = parse_answer(text, "grid", catalog, Grid(8, 8))       # valid items (bad ones dropped)
     answer = read_answer(text, "grid", catalog, Grid(8, 8))       # .items and .item_errors
-    format_answer(items, "grid")   # canonical text; parse_answer(format_answer(x)) == x
+
+Writing answers (`format_answer`, `answer_items`) and the structured-output schema (`answer_schema`) are in
+answer_format.py.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from degusta_learn.errors import DegustaError
 
 if TYPE_CHECKING:
     from degusta_learn.render.grid import Grid
-    from degusta_learn.scene import Catalog, Placement
+    from degusta_learn.scene import Catalog
 
 KINDS = ("grid", "unmarked")
 _QUOTES = str.maketrans({"\u2018": "'", "\u2019": "'", "\u201a": "'", "\u201b": "'", "\u2032": "'", "`": "'",
@@ -61,7 +63,7 @@ MAX_NUMBER_CHARS = 40
 MAX_CANDIDATES = 32
 """Most `[{` starts tried when looking for the answer list."""
 MAX_REASON_CHARS = 200
-_KEYS = {"grid": ("type", "id", "position", "cardinal_direction"), "unmarked": ("type", "id", "position", "rotation")}
+ANSWER_KEYS = {"grid": ("type", "id", "position", "cardinal_direction"), "unmarked": ("type", "id", "position", "rotation")}
 STRUCTURED_KEY = "objects"
 """The key of the list in a structured answer `{"objects": [...]}` (providers want an object at top level)."""
 STRUCTURED_NAME = "degusta_answer"
@@ -339,12 +341,12 @@ def _item(raw: Any, i: int, kind: str, catalog: Catalog, grid: Grid | None) -> A
         k = str(key).strip().lower() if isinstance(key, str) else _short(key)
         if kind == "grid" and k == "direction":
             k = "cardinal_direction"
-        if k not in _KEYS[kind]:
-            raise fail(f"unknown key {_short(str(key))} (expected {', '.join(_KEYS[kind])})")
+        if k not in ANSWER_KEYS[kind]:
+            raise fail(f"unknown key {_short(str(key))} (expected {', '.join(ANSWER_KEYS[kind])})")
         if k in d:
             raise fail(f"key {k!r} given twice")
         d[k] = value
-    for k in _KEYS[kind]:
+    for k in ANSWER_KEYS[kind]:
         if k not in d:
             raise fail(f"missing key {k!r}")
     type_ = d["type"]
@@ -416,119 +418,3 @@ def _direction(value: Any, fail) -> str:
 
 
 # ----------------------------------------------------------------------------- the answer's JSON schema
-
-def answer_schema(kind: str, catalog: Catalog, grid: Grid | None = None) -> dict:
-    """The JSON schema of a structured answer `{"objects": [item, ...]}` (OpenAI strict-mode subset).
-
-    Built from the parser's own definitions: an item is one branch per object type (`anyOf`, the type
-    first as the discriminator) whose `id` enum holds only that type's catalog ids, so a schema-conforming
-    item is never "id 75 is a plate, not a cup"; grid items list cells of `grid` (enum) and one of the
-    8 `DIRECTIONS`, unmarked items a position [x, y] in [0, 1] and a rotation in [0, 360]. Every object
-    has `additionalProperties: false` and lists all its properties as required (strict mode's rules).
-    What no JSON schema says (an id given by two items) stays with the item policy: the later item is
-    dropped, the answer still parses. Deterministic for a given catalog and grid (it is part of the
-    cache key).
-    """
-    from degusta_learn.render.grid import DIRECTIONS, Grid
-
-    if kind not in KINDS:
-        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
-    grid = grid or Grid()
-    types = list(catalog.types)
-    ids = {t: sorted(o.id for o in catalog if o.type == t) for t in types}
-    n_cells = grid.rows * grid.cols
-    n_enum = len(types) + sum(len(v) for v in ids.values()) + (len(types) * len(DIRECTIONS) if kind == "grid" else 0)
-    cells_as_enum = kind == "grid" and n_enum + len(types) * n_cells <= MAX_ENUM_VALUES
-    ids_as_enum = n_enum + (len(types) * n_cells if cells_as_enum else 0) <= MAX_ENUM_VALUES
-    if kind == "grid":
-        if cells_as_enum:
-            cell = {"type": "string", "enum": [grid.cell_id(c, r) for r in range(grid.rows) for c in range(grid.cols)]}
-        else:
-            rows = "|".join(str(r) for r in range(grid.rows, 0, -1))
-            cell = {"type": "string", "pattern": f"^[A-{chr(ord('A') + grid.cols - 1)}](?:{rows})$"}
-        rest = {"position": {"type": "array", "items": cell, "minItems": 1, "maxItems": n_cells},
-                "cardinal_direction": {"type": "string", "enum": list(DIRECTIONS)}}
-    else:
-        rest = {"position": {"type": "array", "items": {"type": "number", "minimum": 0, "maximum": 1},
-                             "minItems": 2, "maxItems": 2},
-                "rotation": {"type": "number", "minimum": 0, "maximum": 360}}
-    branches = []
-    for t in types:
-        oid = ({"type": "integer", "enum": ids[t]} if ids_as_enum
-               else {"type": "integer", "minimum": min(ids[t]), "maximum": max(ids[t])})
-        props = {"type": {"type": "string", "enum": [t]}, "id": oid, **rest}
-        assert tuple(props) == _KEYS[kind]
-        branches.append({"type": "object", "properties": props, "required": list(props),
-                         "additionalProperties": False})
-    items = branches[0] if len(branches) == 1 else {"anyOf": branches}
-    return {"type": "object",
-            "properties": {STRUCTURED_KEY: {"type": "array", "items": items,
-                                            "description": "the objects to place, in placement order"}},
-            "required": [STRUCTURED_KEY], "additionalProperties": False}
-
-
-def format_answer_json(items: list[AnswerItem], kind: str) -> str:
-    """A structured answer as the JSON text a schema-constrained model emits (tests, replays)."""
-    import json
-
-    if kind not in KINDS:
-        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
-    out = []
-    for it in items:
-        if kind == "grid":
-            out.append({"type": it.type, "id": int(it.id), "position": list(it.cells or []),
-                        "cardinal_direction": it.direction})
-        else:
-            out.append({"type": it.type, "id": int(it.id), "position": [float(v) for v in it.position],
-                        "rotation": float(it.rotation)})
-    return json.dumps({STRUCTURED_KEY: out})
-
-
-# ----------------------------------------------------------------------------- formatting
-
-def _num(v: float) -> str:
-    s = repr(float(v))
-    return s[:-2] if s.endswith(".0") else s
-
-
-def format_answer(items: list[AnswerItem], kind: str) -> str:
-    """The canonical answer text (what a fine-tuned model is trained to emit).
-
-    Example: `[{'type': 'plate', 'id': 17, 'position': ['D4', 'D5'], 'cardinal_direction': 'N'}]`.
-    Numbers are written exactly (shortest repr), so round positions first for short targets.
-    """
-    if kind not in KINDS:
-        raise DegustaError(f"answer kind: expected one of {list(KINDS)}, got {kind!r}")
-    out = []
-    for it in items:
-        if kind == "grid":
-            cells = ", ".join(f"'{c}'" for c in it.cells or [])
-            out.append(f"{{'type': '{it.type}', 'id': {int(it.id)}, 'position': [{cells}], "
-                       f"'cardinal_direction': '{it.direction}'}}")
-        else:
-            x, y = it.position
-            out.append(f"{{'type': '{it.type}', 'id': {int(it.id)}, 'position': [{_num(x)}, {_num(y)}], "
-                       f"'rotation': {_num(it.rotation)}}}")
-    return "[" + ", ".join(out) + "]"
-
-
-def answer_items(placements: list[Placement], catalog: Catalog, kind: str, grid: Grid | None = None,
-                 decimals: int = 3) -> list[AnswerItem]:
-    """The items a perfect answer would give for `placements` (fine-tuning targets, tests).
-
-    Grid answers get the cells of each rotated footprint (`grid.encode`) and the nearest direction;
-    unmarked answers get x, y rounded to `decimals` and the rotation rounded to whole degrees.
-    """
-    from degusta_learn.render.grid import Grid, rotation_to_direction
-
-    grid = grid or Grid()
-    items = []
-    for p in placements:
-        obj = catalog[p.object]
-        if kind == "grid":
-            items.append(AnswerItem(type=obj.type, id=obj.id, cells=grid.encode(obj, p.x, p.y, p.rotation),
-                                    direction=rotation_to_direction(p.rotation)))
-        else:
-            items.append(AnswerItem(type=obj.type, id=obj.id, position=(round(p.x, decimals), round(p.y, decimals)),
-                                    rotation=float(round(p.rotation)) % 360.0))
-    return items

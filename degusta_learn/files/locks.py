@@ -1,7 +1,7 @@
 """One writer at a time: an exclusive lock on every folder or file a command writes, refused in one line.
 
 Usage:
-    from degusta_learn.locks import hold
+    from degusta_learn.files.locks import hold
     with hold("runs/eval", "output folder"):      # lock file runs/.eval.degusta-lock, beside the folder
         ...                                         # a second `hold` of runs/eval, in any process: LockHeld
 
@@ -15,7 +15,7 @@ which the next writer simply takes over. Within one process the lock is re-entra
 (a trainer holds its run folder and `fit` asks again); another thread is refused like another process.
 
 Where lock files live. Beside the path, never inside it: `<parent>/.<name>.degusta-lock`. An output folder
-is swapped in whole (outdir.write_folder), a model folder may be uploaded as it is, a dataset folder is read
+is swapped in whole (folders.write_folder), a model folder may be uploaded as it is, a dataset folder is read
 by name: a lock file inside any of them would be replaced with it, uploaded with it or mistaken for a user's
 file. The file is hidden (a leading dot), named for the tool, and removed when the lock is released; only a
 killed holder leaves one behind (harmless, see above). `is_lock_file(name)` tells them apart.

@@ -1,7 +1,8 @@
-"""Output folders written whole or not at all: the one mechanism of evaluate, compare, render and data generate.
+"""Output folders written whole or not at all: the one mechanism of evaluate, compare, render, data generate
+and every model export.
 
 Usage:
-    from degusta_learn.outdir import OutputKind, write_folder
+    from degusta_learn.files.folders import OutputKind, write_folder
 
     EVAL = OutputKind("evaluation report", ("metrics.json", "per_episode.csv", "report.md"))
     with write_folder("runs/eval", EVAL) as tmp:    # tmp: an empty staging folder beside runs/eval
@@ -40,9 +41,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError, Terminated
-from degusta_learn.fileio import UMASK, path_problem, refuse_overwriting_inputs, shown_path
-from degusta_learn.locks import hold
-from degusta_learn.writeerrors import write_failure
+from degusta_learn.files.atomic import UMASK
+from degusta_learn.files.locks import hold
+from degusta_learn.files.paths import path_problem, refuse_shipped, shown_path
+from degusta_learn.files.write_errors import write_failure
 
 
 @dataclass(frozen=True)
@@ -120,14 +122,19 @@ def clean_stale(target: Path, kind: OutputKind) -> list[str]:
     return done
 
 
-def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = True) -> Path:
+def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = True,
+                 allow_shipped: bool = False) -> Path:
     """Clean leftovers of an interrupted run and refuse a target we may not write; returns the target.
 
-    `replace=False`: an existing non-empty folder is refused (data generate without --overwrite).
+    `replace=False`: an existing non-empty folder is refused (data generate without --overwrite). A folder inside
+    the package's shipped models or configs is refused (`guard.refuse_shipped`) unless `allow_shipped` (a
+    pretraining run asked by name to replace the shipped base).
     """
     if not str(target).strip():
         raise DegustaError("the output folder path is empty; give the folder to write")
     _refuse_path_problem(target)
+    if not allow_shipped:
+        refuse_shipped(target)
     target = Path(target)
     if target.is_symlink():
         try:
@@ -162,30 +169,11 @@ def check_target(target: str | os.PathLike, kind: OutputKind, replace: bool = Tr
 
 
 def _refuse_path_problem(target: str | os.PathLike, key: str | None = None) -> None:
-    """One line (naming `key` when given) for a target no folder can be made at (fileio.path_problem: a NUL byte, a
+    """One line (naming `key` when given) for a target no folder can be made at (paths.path_problem: a NUL byte, a
     name or path too long, a parent that is a file, non-UTF-8, a broken link ...), before `pathlib` is asked anything."""
     problem = path_problem(target)
     if problem:
         raise DegustaError(f"{f'{key}: ' if key else ''}{shown_path(target)}: {problem}")
-
-
-def refuse_replacing_inputs(target: str | os.PathLike, kind: OutputKind, inputs: Sequence[tuple[str, object]] = (),
-                            datasets: Sequence[object] = (), writes: Sequence[str] = (), keep: Sequence[str] = (),
-                            key: str = "out") -> None:
-    """Refuse writing the folder `target` when that would replace or remove an input of the command.
-
-    Writing replaces every entry named in `writes` and moves out every existing entry the command owns
-    (`kind.patterns`) but `keep`: none of them may be, or hold, one of `inputs` ((what, path) pairs) or a
-    dataset file (fileio.refuse_overwriting_inputs, the same guard the file outputs use).
-    """
-    _refuse_path_problem(target, key)
-    target = Path(target)
-    names = set(writes)
-    if target.is_dir() and not target.is_symlink():
-        with contextlib.suppress(OSError):
-            names |= {p.name for p in target.iterdir() if kind.owns_name(p.name)}
-    for name in sorted(names - set(keep)):
-        refuse_overwriting_inputs(target / name, inputs, key=key, datasets=datasets)
 
 
 def _names(names: Sequence[str]) -> str:
@@ -234,16 +222,16 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 @contextlib.contextmanager
 def write_folder(target: str | os.PathLike, kind: OutputKind, keep: Sequence[str] = (),
-                 replace: bool = True) -> Iterator[Path]:
+                 replace: bool = True, allow_shipped: bool = False) -> Iterator[Path]:
     """Yield an empty staging folder; on success its content becomes `target` whole (see module docstring).
 
     `keep`: entries of an existing target carried into the new one (hard links) unless the body writes
     them itself. An OSError while writing (or a failed write torch / safetensors report in their own exception
-    types, `writeerrors.write_failure`) becomes a DegustaError naming the target.
+    types, `write_errors.write_failure`) becomes a DegustaError naming the target.
     The target is locked for the whole write (`locks.hold`: `.NAME.degusta-lock` beside it): a second writer of
     the same folder, in any process, is refused in one line naming the first.
     """
-    target = check_target(target, kind, replace)
+    target = check_target(target, kind, replace, allow_shipped)
     with hold(target, kind.what), _write_folder(target, kind, keep, replace) as stage:
         yield stage
 

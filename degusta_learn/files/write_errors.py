@@ -12,7 +12,7 @@ A file-size limit (`ulimit -f`, RLIMIT_FSIZE) makes the kernel send SIGXFSZ, whi
 CPython ignores SIGXFSZ at start-up, so in `degusta` the write fails with EFBIG instead and is reported here.
 
 Usage:
-    from degusta_learn.writeerrors import writing
+    from degusta_learn.files.write_errors import writing
     with writing(run / "last.ckpt", "checkpoint", after="; the previous one is kept"):
         torch.save(state, f)
 """

@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from degusta_learn.render.grid import Grid
 
 from degusta_learn.names import PROMPT_METHODS  # noqa: E402  (re-exported: the four methods)
+
 IMAGE_FORMATS = {"jpeg": ("jpg", "image/jpeg"), "png": ("png", "image/png")}
 JPEG_QUALITY = 90
 
@@ -181,7 +182,8 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
 
 def context_answer(method: str, arrangement, catalog, grid: Grid | None) -> str:
     """`arrangement` written as `method`'s answer (cells and directions, or positions and rotations, with ids)."""
-    from degusta_learn.prompting.answers import answer_items, answer_kind, format_answer
+    from degusta_learn.task.answer_format import answer_items, format_answer
+    from degusta_learn.task.answers import answer_kind
 
     kind = answer_kind(method)
     return format_answer(answer_items(list(arrangement.placements), catalog, kind, grid), kind)
@@ -235,7 +237,7 @@ def _answer_format(item: str, structured: bool) -> str:
     """The sentence giving the answer's format: the paper's python list, or the structured JSON object."""
     if not structured:
         return f"Give your answer as a python list formatted as follows: [{item}]. "
-    from degusta_learn.prompting.answers import STRUCTURED_KEY
+    from degusta_learn.task.answers import STRUCTURED_KEY
 
     item = item.replace("'", '"')
     return f'Give your answer as a JSON object formatted as follows: {{"{STRUCTURED_KEY}": [{item}]}}. '

@@ -15,7 +15,7 @@ frequent unused id of that type at that step; if every candidate is used, the st
 object cannot be placed twice). Unparseable responses are `None`; if all are, the result is empty and
 `diagnostics["failed"]` is True (never an exception).
 
-Object votes, `aggregate_votes` (docs/tiny_base.md points 35 and 37: a small fine-tuned model names the same
+Object votes, `aggregate_votes` (a small fine-tuned model names the same
 objects in different orders across its samples, so a step's mode mixes different objects):
 
 - plan length = median of the lengths of the parsed responses (rounded half to even; 0 where most are empty);
@@ -25,14 +25,14 @@ objects in different orders across its samples, so a step's mode mixes different
 
 An answer names an object at most once (`read_answer` drops an item naming one again), so a vote is one answer's.
 
-Greedy + votes, `anchored_votes` (`aggregation: greedy_votes`; docs/tiny_base.md points 35 and 39): the model's
+Greedy + votes, `anchored_votes` (`aggregation: greedy_votes`): the model's
 greedy answer (one more answer, at temperature 0) keeps its objects and places, and is lengthened, never shortened,
 to the n samples' median length by the best-voted objects it lacks (each placed from every sample naming it). For a
 model whose greedy lists end early but whose samples' lengths follow the person's count. An unparseable greedy
-answer falls back to votes. `greedy_votes_pooled` (docs/tiny_base.md point 40): the same objects, each of the greedy
+answer falls back to votes. `greedy_votes_pooled`: the same objects, each of the greedy
 answer's placed from the greedy answer and every sample naming it (the mean of their cells), as votes places its
 objects: chosen over `greedy_votes` on the validation participants (`benchmarks/choose_decoding.py`).
-`greedy_votes_context` (docs/tiny_base.md point 48): `greedy_votes_pooled` at the length the person's own context
+`greedy_votes_context`: `greedy_votes_pooled` at the length the person's own context
 tables give, the median of their object counts (rounded half to even), instead of the samples' median: the greedy
 answer is lengthened by votes to it or, if longer, keeps its best-voted objects (ties: the earlier step) in its own
 order. An episode without context tables takes the samples' median (`diagnostics["length_from"]` says which).
@@ -53,8 +53,8 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.answers import KINDS, AnswerItem
 from degusta_learn.scene import Placement
+from degusta_learn.task.answers import KINDS, AnswerItem
 
 
 def _ranked(values: list) -> list:
@@ -257,7 +257,7 @@ def decoding_diagnostics(samples: list, kind: str, catalog, grid=None) -> dict[s
     (items read from the free answers that parse / of those dropped by the item policy) and `free_responses`
     (the free answer where the grammar changed it, else null).
     """
-    from degusta_learn.prompting.answers import AnswerParseError, read_answer
+    from degusta_learn.task.answers import AnswerParseError, read_answer
 
     decs = [s.decoding if s is not None and isinstance(s.decoding, dict) else None for s in samples]
     known = [d for d in decs if d is not None]

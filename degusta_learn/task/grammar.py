@@ -73,7 +73,8 @@ class AnswerGrammar:
         self.types = list(catalog.types)
         self.ids = {t: [str(o.id) for o in catalog.of_type(t)] for t in self.types}
         if kind == "grid":
-            from degusta_learn.render.grid import DIRECTIONS, Grid, max_cells as footprint_cells
+            from degusta_learn.render.grid import DIRECTIONS, Grid
+            from degusta_learn.render.grid import max_cells as footprint_cells
             from degusta_learn.scene import object_size
 
             grid = grid or Grid()
