@@ -44,7 +44,7 @@ def test_compare_matches_evaluate_and_links_resolve(setup, small_dataset_dir, tm
     ds, eps, a, b = setup
     cfg = CompareConfig(dataset=str(small_dataset_dir), out=str(tmp_path / "cmp"), episodes=str(tmp_path / "eps.jsonl"),
                         methods=[MethodEntry("a", predictions=str(a)), MethodEntry("b", predictions=str(b))],
-                        n_bootstrap=200, qualitative=1, image_size=128)
+                        n_bootstrap=200, qualitative=1, render_size=128)
     result = compare(cfg, log=lambda m: None)
     out = result.out
     assert result.failures == {} and result.failure_summary() == ""
@@ -81,7 +81,7 @@ def test_a_failing_method_is_reported_and_the_rest_written(setup, small_dataset_
     bad_cfg.write_text(f"method: nope\ndataset: {small_dataset_dir}\nout: {tmp_path / 'x.jsonl'}\n")
     cfg = CompareConfig(dataset=str(small_dataset_dir), out=str(tmp_path / "cmp"), episodes=str(tmp_path / "eps.jsonl"),
                         methods=[MethodEntry("a", predictions=str(a)), MethodEntry("broken", config=str(bad_cfg))],
-                        n_bootstrap=100, qualitative=0, image_size=96)
+                        n_bootstrap=100, qualitative=0, render_size=96)
     result = compare(cfg, log=lambda m: None)
     out = result.out
     assert result.failed == ["broken"] and "unknown method 'nope'" in result.failures["broken"]
@@ -118,7 +118,7 @@ def test_a_one_object_method_is_marked_and_never_ranked_first(setup, small_datas
                         methods=[MethodEntry("lonely", predictions=str(tmp_path / "lonely.jsonl")),
                                  MethodEntry("mostly_failed", predictions=str(tmp_path / "mostly.jsonl")),
                                  MethodEntry("b", predictions=str(b)), MethodEntry("a", predictions=str(a))],
-                        n_bootstrap=100, qualitative=1, image_size=96)
+                        n_bootstrap=100, qualitative=1, render_size=96)
     out = compare(cfg, log=lambda m: None).out
     metrics = json.loads((out / "metrics.json").read_text())
     m = metrics["methods"]

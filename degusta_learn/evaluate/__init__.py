@@ -5,7 +5,9 @@ Usage:
 
 Every record is checked against its episode first (scoring.check_records): a file holds one method, and
 a prediction whose participant or target disagrees with its episode (or whose target is a context trial)
-is refused with file, line and field. The three files are written as one set ((`files.folders`)): an
+is refused with file, line and field; a record lacking a field a metric needs (placements without
+`rotation`) is scored on what it has, with a note. Intervals resample participants by default
+(`cluster=None`: episodes); the report says which. The three files are written as one set ((`files.folders`)): an
 error at any point leaves the previous report folder as it was.
 """
 
@@ -16,26 +18,29 @@ from pathlib import Path
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.report import write_report
 from degusta_learn.evaluate.scoring import EpisodeRow, check_records, score_predictions
-from degusta_learn.evaluate.summary import summarize
+from degusta_learn.evaluate.summary import check_cluster, paired_comparisons, summarize
 from degusta_learn.files.folders import OutputKind, check_target, write_folder
 from degusta_learn.files.guard import refuse_replacing_inputs
 from degusta_learn.metrics import acceptability_curve
 from degusta_learn.scene import load_dataset, read_episodes, read_predictions
 
-__all__ = ["EVALUATION", "EpisodeRow", "evaluate_files", "score_predictions", "summarize"]
+__all__ = ["EVALUATION", "EpisodeRow", "evaluate_files", "paired_comparisons", "score_predictions", "summarize"]
 
 EVALUATION = OutputKind("evaluation report", ("metrics.json", "per_episode.csv", "report.md"))
 """What `degusta evaluate` writes into its --out folder (as one set)."""
 
 
 def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out: str | Path,
-                   episodes: str | Path | None = None, n_bootstrap: int = 1000, seed: int = 0) -> Path:
+                   episodes: str | Path | None = None, n_bootstrap: int = 1000, seed: int = 0,
+                   cluster: str | None = "participant") -> Path:
     """Score prediction files against a dataset and write the report folder `out`.
 
     With `episodes`, every prediction must belong to that set and every episode must be predicted.
     Several files may hold different methods; a method name found in two files (say, `mogma` from two
     backends) is labelled with each file's folder name, e.g. `mogma (hf_tiny_zeroshot)`.
+    `cluster`: the bootstrap resamples participants ("participant", the default) or episodes (None).
     """
+    check_cluster(cluster)
     out = check_target(out, EVALUATION)  # refuse a bad --out before any work
     refuse_replacing_inputs(out, [*(("a predictions file", p) for p in prediction_files),
                                   ("the episodes file", episodes)],
@@ -69,7 +74,7 @@ def evaluate_files(dataset: str | Path, prediction_files: list[str | Path], out:
     if len({frozenset(s) for s in sets.values()}) > 1:
         notes.append("The methods were predicted on different episode sets: compare them with care "
                      "(`degusta compare` refuses this).")
-    summary = summarize(rows, n_bootstrap=n_bootstrap, seed=seed)
+    summary = summarize(rows, n_bootstrap=n_bootstrap, seed=seed, cluster=cluster)
     curve = acceptability_curve(ds.ratings)
     with write_folder(out, EVALUATION) as tmp:
         write_report(tmp, "Evaluation report", ds.label, summary, rows, curve, ds.ratings is not None, notes)

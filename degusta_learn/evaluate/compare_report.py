@@ -4,6 +4,12 @@ Every table, plot and image lists the methods in rank order (summary.rank_method
 first, degenerate methods last) and marks degenerate methods (summary.label; grey hatched bars, dotted
 lines, "[degenerate]" in qualitative panel titles).
 
+Intervals and paired tests resample participants unless the summary says episodes (`summary.resampling`);
+one line under the tables says which. The paired comparisons are `summary.paired_comparisons` of the
+rows, resampled like the summary: `paired` entries without a `resampling` record (computed per episode,
+with the old shift test) are recomputed here, so the bold "interval excludes 0" and the p-value always
+come from the same resamples.
+
 Untrusted text (the config's title, the dataset's name, episode ids, the error messages of failed methods, which
 may quote a server's reply) enters report.md through degusta_learn.textsafe, and report.html is rendered by
 `textsafe.markdown_to_html` (raw HTML shown as text, only relative and http(s) links): docs/reliability.md,
@@ -25,11 +31,13 @@ from degusta_learn.evaluate.report import (
     answer_table,
     context_table,
     few_object_warnings,
+    intervals_line,
     md_label,
     method_table,
+    plan_table,
     write_per_episode_csv,
 )
-from degusta_learn.evaluate.summary import GRAMMAR_MARK, ranked
+from degusta_learn.evaluate.summary import GRAMMAR_MARK, paired_comparisons, ranked, resampling_of
 from degusta_learn.files.atomic import atomic_write_text
 from degusta_learn.files.jsonio import atomic_write_json
 from degusta_learn.textsafe import MESSAGE_LIMIT, html_text, markdown_to_html, md_code, md_text
@@ -44,27 +52,56 @@ code{{background:#f3f3f3}}</style></head><body>
 """
 
 
+def _finite(*values) -> bool:
+    return all(isinstance(v, int | float) and math.isfinite(v) for v in values)
+
+
+def p_text(p, n_resamples: int | None = None) -> str:
+    """A p-value as the paired table shows it: '<1/B' where every resample fell on one side (p = 0)."""
+    if not _finite(p):
+        return "-"
+    if p == 0:
+        return f"<{1 / n_resamples:.2g}" if n_resamples else "<0.001"
+    return f"{p:.3f}"
+
+
+def paired_cells(r: dict | None, n_resamples: int | None = None) -> list[str]:
+    """The two cells of one paired difference: 'diff [lo, hi]' (bold where the interval excludes 0) and p."""
+    if r is None or not _finite(r.get("diff")):
+        return ["-", "-"]
+    if not _finite(r.get("lo"), r.get("hi")):
+        return [f"{r['diff']:+.3f} [n/a]", "-"]
+    text = f"{r['diff']:+.3f} [{r['lo']:+.3f}, {r['hi']:+.3f}]"
+    return [f"**{text}**" if r["lo"] > 0 or r["hi"] < 0 else text, p_text(r.get("p_value"), n_resamples)]
+
+
 def _paired_lines(paired: list[dict], summary: dict[str, dict]) -> list[str]:
     if not paired:
         return []
-    lines = ["Differences b - a on the same episodes (paired bootstrap, 95% interval, two-sided p); "
-             "**bold** where the interval excludes 0. Pairs follow the ranking: a is the better-ranked method. "
-             "Set RMSD counts a failed prediction as c; the Kabsch RMSD (paper) column uses only the episodes "
-             "where both predicted something.", "",
+    lines = ["Differences b - a on the same episodes (paired bootstrap, 95% percentile interval; two-sided p read "
+             "off the same resamples: twice the share of resampled differences on the far side of 0, so p < 0.05 "
+             "exactly where the interval excludes 0); **bold** where the interval excludes 0. Pairs follow the "
+             "ranking: a is the better-ranked method. Set RMSD counts a failed prediction as c; the Kabsch RMSD "
+             "(paper) column uses only the episodes where both predicted something.", "",
              "| a | b | Δ set RMSD | p | Δ object accuracy (paper) | p | Δ Kabsch RMSD (paper) | p |",
              "|---|---|---|---:|---|---:|---|---:|"]
     for e in paired:
-        cells = []
-        for metric in ("set_rmsd", "object_accuracy", "rmsd"):
-            r = e.get(metric)
-            if r is None:
-                cells += ["-", "-"]
-                continue
-            text = f"{r['diff']:+.3f} [{r['lo']:+.3f}, {r['hi']:+.3f}]"
-            cells += [f"**{text}**" if r["lo"] > 0 or r["hi"] < 0 else text, f"{r['p_value']:.3f}"]
+        n_resamples = (e.get("resampling") or {}).get("n_resamples")
+        cells = [c for metric in ("set_rmsd", "object_accuracy", "rmsd") for c in paired_cells(e.get(metric), n_resamples)]
         lines.append(f"| {md_label(e['a'], summary[e['a']])} | {md_label(e['b'], summary[e['b']])} | "
                      + " | ".join(cells) + " |")
     return lines
+
+
+def consistent_paired(cfg, rows, summary: dict[str, dict], paired: list[dict]) -> list[dict]:
+    """`paired` as this report shows it: resampled like the summary's intervals (participants by default). Entries
+    computed elsewhere without a `resampling` record (per episode, with another p-value) are recomputed from the
+    rows by `summary.paired_comparisons`."""
+    if not paired or all(isinstance(e.get("resampling"), dict) for e in paired):
+        return paired
+    unit = resampling_of(summary).get("unit", "participant")
+    return paired_comparisons(rows, list(summary), cfg.n_bootstrap, cfg.seed,
+                              cluster=None if unit == "episode" else "participant")
 
 
 def _paper_table(summary: dict[str, dict], curve: dict[float, float]) -> list[str]:
@@ -118,7 +155,7 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
         raise DegustaError(f"qualitative: expected a number of episodes >= 0, got {cfg.qualitative!r}")
     for i in rng.choice(len(episodes), size=min(cfg.qualitative, len(episodes)), replace=False):
         chosen.append(("random", episodes[int(i)]))
-    renderer = Renderer.for_dataset(ds, size=cfg.image_size)
+    renderer = Renderer.for_dataset(ds, size=cfg.render_size)
     by = {(r.method, r.episode): r for r in rows}
     lines = []
     for n, (why, eid) in enumerate(chosen):
@@ -141,6 +178,7 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
     out.mkdir(parents=True, exist_ok=True)
     summary = ranked(summary)
     predictions = {m: predictions[m] for m in summary if m in predictions}  # rank order
+    paired = consistent_paired(cfg, rows, summary, paired)
     write_per_episode_csv(out / "per_episode.csv", rows)
     atomic_write_json(out / "metrics.json", {"dataset": ds.label, "n_episodes": len(episodes), "methods": summary,
                                              "ranking": list(summary), "ranked_by": "set_rmsd (degenerate last)",
@@ -148,9 +186,10 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
                                              "rating_acceptance": {f"{t:.2f}": v for t, v in curve.items()}})
     floor = _grid_floor(ds)
     plots = out / "plots"
+    unit = resampling_of(summary).get("unit", "episode")
     lines = [f"# {md_text(cfg.title)}", "",
              f"Dataset: **{md_text(ds.label)}**. Episodes: {len(episodes)} ({cfg.split} participants). "
-             "Intervals are 95% bootstrap intervals over episodes.", ""]
+             f"Intervals are 95% bootstrap intervals over {unit}s.", ""]
     if ds.synthetic:
         lines += ["> SYNTHETIC data generated by degusta_learn: these are not the paper's human-study numbers.", ""]
     if failures:
@@ -164,8 +203,9 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         plot_acceptability(curve, rmsds, plots / "acceptability.png",
                            {shown[m] for m, s in summary.items() if s.get("degenerate")})
         has_ctx = plot_context(summary, plots / "context.png", floor) is not None
-        lines += ["## Results", "", *method_table(summary), "", *few_object_warnings(summary),
-                  "![metrics](plots/metrics.png)", ""]
+        lines += ["## Results", "", *method_table(summary), "", intervals_line(summary), "",
+                  *few_object_warnings(summary), "![metrics](plots/metrics.png)", ""]
+        lines += [*plan_table(summary), "", intervals_line(summary), ""]
         lines += ["## Acceptability (the paper's Table 1)", "", *acceptability_lines(curve, ds.ratings is not None), "",
                   *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
         ctx = context_table(summary)
@@ -182,6 +222,8 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         if answers:
             lines += [*answers, ""]
         lines += ["## Paired comparisons", "", *_paired_lines(paired, summary), ""]
+        if paired:
+            lines += [intervals_line(summary, paired=True), ""]
         log("[compare] rendering qualitative images")
         lines += ["## Qualitative: ground truth and each method side by side", "",
                   *_qualitative(cfg, ds, rows, predictions, summary, out)]

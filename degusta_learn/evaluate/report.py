@@ -4,6 +4,9 @@ The report names the dataset (and says SYNTHETIC where it is), states how each m
 one line, and warns that Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0):
 read it beside the set RMSD, the count error and the unregistered RMSD. Methods are listed best first
 by mean set RMSD (summary.rank_methods); a degenerate method is marked and listed after all others.
+A second table (`plan_table`) shows the rest of the task plan: placement order, rotation, and physical
+plausibility (off the table, overlapping footprints) with the ground truth's own rates as the reference.
+Under the tables one line says what the intervals resampled (participants by default, or episodes).
 
 Every untrusted string (the title, the dataset's name, method names, notes naming files) enters the Markdown
 through degusta_learn.textsafe (`md_text`, `md_label`), and per_episode.csv is written by `textsafe.write_csv`
@@ -15,11 +18,19 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from degusta_learn.evaluate.scoring import CSV_COLUMNS, EpisodeRow
-from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, RANKING_NOTE, label, ranked
+from degusta_learn.evaluate.scoring import CSV_COLUMNS, NEEDS, EpisodeRow
+from degusta_learn.evaluate.summary import (
+    DEGENERATE_MARK,
+    GRAMMAR_MARK,
+    RANKING_NOTE,
+    label,
+    ranked,
+    resampling_line,
+    resampling_of,
+)
 from degusta_learn.files.atomic import atomic_open, atomic_write_text
 from degusta_learn.files.jsonio import atomic_write_json
-from degusta_learn.metrics import SET_PENALTY
+from degusta_learn.metrics import OVERLAP_FRACTION, SET_PENALTY
 from degusta_learn.textsafe import md_prose, md_text, write_csv
 
 PAPER_NOTE = "The paper's metrics: object accuracy, Kabsch RMSD and acceptability (acc@t), marked (paper)."
@@ -31,6 +42,11 @@ METRIC_NOTES = f"""\
 - **acc@t** (paper): fraction of episodes whose prediction has Kabsch RMSD <= t (failed predictions never count).
 - **unreg. RMSD**: RMSD of matched positions without registration (where, not only what shape).
 - **count error**: |predicted objects - ground-truth objects|.
+- **object precision**: same-id matches / predicted objects; **object F1**: 2 * same-id matches / (ground-truth + predicted objects), the harmonic mean of precision and object accuracy (which is the recall). A failed prediction scores 0 on all three.
+- **set RMSD (unreg.)**: the set RMSD on unregistered distances: it also charges for where the arrangement is, not only its shape.
+- **order τ**: Kendall's tau between the true and the predicted placement order of the matched objects (1 same order, -1 reversed); undefined with fewer than two matched objects, so averaged over the episodes counted beside it.
+- **rotation error**: degrees between predicted and true rotation of matched objects, modulo the symmetry both objects share (a round plate is not scored, a square one modulo 90, a cup, fork, knife or spoon in [0, 180]); mean over the scored pairs of an episode, then over episodes.
+- **off table**: share of predicted objects whose centroid is outside the table surface; **overlapping pairs**: share of pairs of predicted objects whose footprint ellipses (the scene's width x length) overlap by more than {OVERLAP_FRACTION:g} of the smaller one. The ground truth's own rates are shown as the reference.
 - **{DEGENERATE_MARK.strip()}**: more than half of the method's non-failed predictions match at most 2 objects of a ground truth of 3 or more, where Kabsch RMSD is ~0 by construction; such a method is ranked after all others.
 - Matching: Hungarian assignment on Hamming distance over type, colours, materials, shape, pattern (the two colours and the two materials compare as unordered pairs: red/blue = blue/red); ties go to nearer positions.
 - **{GRAMMAR_MARK.strip()}**: a local model decoded inside the answer grammar, so every answer parses by construction; its "parsed without the grammar" rate (the same model and seeds decoding freely) is the one to set beside free-text failure rates such as the paper's.
@@ -39,10 +55,19 @@ METRIC_NOTES = f"""\
 
 
 def fmt(stat: dict | None, digits: int = 3) -> str:
-    """'mean [lo, hi]' or '-' for a {"mean", "ci_low", "ci_high"} entry."""
+    """'mean [lo, hi]' or '-' for a {"mean", "ci_low", "ci_high"} entry; 'mean [n/a]' without bounds (a clustered
+    interval over fewer than two participants)."""
     if not stat or stat.get("mean") is None:
         return "-"
+    if stat.get("ci_low") is None or stat.get("ci_high") is None:
+        return f"{stat['mean']:.{digits}f} [n/a]"
     return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
+
+
+def intervals_line(summary: dict[str, dict], paired: bool = False) -> str:
+    """The line under the tables saying what the intervals resampled (summary.resampling_line)."""
+    r = resampling_of(summary)
+    return resampling_line(r.get("unit", "episode"), r.get("n_units"), r.get("n_resamples"), paired)
 
 
 def md_label(method: str, summary: dict) -> str:
@@ -54,18 +79,54 @@ def method_table(summary: dict[str, dict]) -> list[str]:
     """The main table, best first (see RANKING_NOTE), degenerate rows marked, with its notes above it."""
     lines = [RANKING_NOTE + " " + PAPER_NOTE, "",
              "| rank | method | episodes | failure rate | set RMSD | object accuracy (paper) | Kabsch RMSD (paper) | "
-             "acc@0.01 (paper) | acc@0.05 (paper) | acc@0.10 (paper) | unreg. RMSD | count error |",
-             "|---:|---|---:|---:|---|---|---|---:|---:|---:|---|---|"]
+             "acc@0.01 (paper) | acc@0.05 (paper) | acc@0.10 (paper) | unreg. RMSD | count error | "
+             "object precision | object F1 | set RMSD (unreg.) |",
+             "|---:|---|---:|---:|---|---|---|---:|---:|---:|---|---|---|---|---|"]
     for rank, (method, s) in enumerate(ranked(summary).items(), 1):
         acc = s["acceptable_at"]
         lines.append(f"| {rank} | {md_label(method, s)} | {s['n_episodes']} | {s['failure_rate']:.3f} | "
                      f"{fmt(s.get('set_rmsd'))} | {fmt(s['object_accuracy'])} | {fmt(s['rmsd'])} | "
                      f"{acc['0.01']:.3f} | {acc['0.05']:.3f} | {acc['0.10']:.3f} | "
-                     f"{fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} |")
+                     f"{fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} | "
+                     f"{fmt(s.get('object_precision'))} | {fmt(s.get('object_f1'))} | "
+                     f"{fmt(s.get('set_rmsd_unregistered'))} |")
     if any(s.get("degenerate") for s in summary.values()):
         lines += ["", f"{DEGENERATE_MARK.strip()}: more than half of this method's non-failed predictions match at "
                   "most 2 objects of a ground truth of 3 or more, where Kabsch RMSD is ~0 by construction; it is "
                   "ranked after every other method."]
+    return lines
+
+
+_SHOWN = {"rotation_error": "rotation error", "overlap_rate": "overlapping pairs"}
+
+
+def plan_table(summary: dict[str, dict]) -> list[str]:
+    """The rest of the task plan, methods ranked: placement order, rotation, off the table, overlapping footprints,
+    each with the number of episodes its mean is taken over; then the ground truth's own rates and any fields the
+    predictions lacked."""
+    lines = ["**Task plan**: placement order, rotation and physical plausibility (how each is defined: \"How to read "
+             "this\"). A mean is taken over the episodes where the metric is defined, counted in the `n` column after "
+             "it.", "",
+             "| rank | method | order τ | n | rotation error (°) | n | off table | n | overlapping pairs | n |",
+             "|---:|---|---|---:|---|---:|---|---:|---|---:|"]
+    for rank, (method, s) in enumerate(ranked(summary).items(), 1):
+        n = s.get("n_scored") or {}
+        cells = [f"{fmt(s.get(m), 1 if m == 'rotation_error' else 3)} | {n.get(m, '-')}"
+                 for m in ("order_tau", "rotation_error", "off_table_rate", "overlap_rate")]
+        lines.append(f"| {rank} | {md_label(method, s)} | " + " | ".join(cells) + " |")
+    gt = next((s["ground_truth"] for s in summary.values() if s.get("ground_truth")), None)
+    if gt:
+        def share(v) -> str:
+            return "-" if v is None else f"{v:.3f}"
+
+        lines += ["", f"Ground truth, same episodes (the reference): off table {share(gt.get('off_table_rate'))}, "
+                      f"overlapping pairs {share(gt.get('overlap_rate'))}."]
+    for method, s in ranked(summary).items():
+        for name, count in (s.get("missing_fields") or {}).items():
+            what = " and ".join(_SHOWN.get(m, m) for m in NEEDS.get(name, ())) or "metrics needing it"
+            lines += ["", f"> {md_text(method)}: {count} of {s['n_episodes']} predictions have placements without "
+                          f"`{md_text(name)}`; their {md_text(what)} are not scored (left out of those means and "
+                          "their n), every other metric is."]
     return lines
 
 
@@ -91,9 +152,8 @@ def answer_table(summary: dict[str, dict]) -> list[str]:
         lines.append(f"| {md_label(method, s)} | {decoding} | {combined} | {rate(s['parse_rate'])} | {rate(free)} | "
                      f"{rate(s.get('forced_close_rate'))} |")
     return ["Answers: how many per episode and, for more than one, how they were combined (steps: the paper's "
-            "per-step modes; votes: the most named objects; greedy_votes: one more, greedy answer lengthened by the "
-            "samples' votes; greedy_votes_pooled: its objects placed from every answer naming them; "
-            "greedy_votes_context: that at the context tables' median count, docs/prompting.md); "
+            "per-step modes; greedy_votes_pooled: one more, greedy answer lengthened by the samples' votes, its "
+            "objects placed from every answer naming them, docs/prompting.md); "
             "the fraction that parsed; for a model decoded inside the answer grammar (every answer parses) "
             "the fraction its free decoding writes parseably (same model, same seeds: the grammar's free answers "
             "are generated wherever it changed one), comparable with free-text parse rates; and the fraction of "
@@ -152,12 +212,14 @@ def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, d
     atomic_write_json(out / "metrics.json", summary)
     write_per_episode_csv(out / "per_episode.csv", rows)
     n_eps = len({r.episode for r in rows})
+    unit = resampling_of(summary).get("unit", "episode")
     lines = [f"# {md_text(title)}", "", f"Dataset: **{md_text(dataset_label)}**. Episodes: {n_eps}. "
              f"Methods: {', '.join(md_text(m) for m in summary)}. Intervals are 95% bootstrap intervals over "
-             "episodes.", ""]
+             f"{unit}s.", ""]
     if "SYNTHETIC" in dataset_label:
         lines += ["> These numbers are on SYNTHETIC data generated by degusta_learn, not on the paper's human data.", ""]
-    lines += ["## Results", "", *method_table(summary), "", *few_object_warnings(summary)]
+    lines += ["## Results", "", *method_table(summary), "", intervals_line(summary), "", *few_object_warnings(summary),
+              *plan_table(summary), "", intervals_line(summary), ""]
     answers = answer_table(summary)
     if answers:
         lines += ["## Answers", "", *answers, ""]

@@ -1,8 +1,14 @@
 """Score predictions episode by episode: the rows of per_episode.csv.
 
 Every method's predictions are scored the same way (degusta_learn.metrics.score_many, equal to
-score_prediction on each, against the held-out target arrangement of the dataset), so zero-shot, baseline
-and fine-tuned methods are compared on equal terms.
+score_prediction on each, against the held-out target arrangement of the dataset and its table), so
+zero-shot, baseline and fine-tuned methods are compared on equal terms.
+
+A predictions file may lack a field a metric needs: placements without `rotation` (an older or hand-written
+file; the reader takes 0 for it). `check_records`, which reads the file itself, marks such records
+(`missing_fields`); `score_predictions` then leaves what needs the rotation unscored (rotation error and
+the footprint overlap: nan, `missing` names the field) instead of scoring a 0 nobody predicted, and the
+reports say how many records lack which field.
 """
 
 from __future__ import annotations
@@ -26,9 +32,14 @@ METHOD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,79}")
 compare's `<out>/predictions/` and rows of the reports, so a predictions file's `method` must be one too."""
 
 CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", "failed", "n_gt", "n_pred",
-               "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd", "tokens",
-               "cost_usd", "n_samples", "n_parsed", "aggregation", "constrained", "n_decoded", "forced_closes",
+               "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd",
+               "object_precision", "object_f1", "set_rmsd_unregistered", "order_tau", "rotation_error",
+               "n_rotation_scored", "off_table_rate", "overlap_rate", "gt_off_table_rate", "gt_overlap_rate", "missing",
+               "tokens", "cost_usd", "n_samples", "n_parsed", "aggregation", "constrained", "n_decoded", "forced_closes",
                "n_free_known", "n_free_parsed")
+MISSING_ATTR = "missing_fields"
+"""The attribute `check_records` sets on a Prediction whose file record lacks fields a metric needs: a tuple of
+field names (e.g. ("rotation",)); `score_predictions` reads it."""
 
 
 @dataclass
@@ -50,6 +61,18 @@ class EpisodeRow:
     rmsd_unregistered: float
     count_error: float
     set_rmsd: float  # set-aware (OSPA) RMSD: c = SET_PENALTY per unmatched object; c for a failed prediction
+    # The rest of the task plan (metrics/scores.py; nan where undefined, see docs/metrics.md):
+    object_precision: float = math.nan  # same-id matches / predicted objects (0 for a failed prediction)
+    object_f1: float = math.nan
+    set_rmsd_unregistered: float = math.nan  # set RMSD without registration
+    order_tau: float = math.nan  # Kendall's tau of the matched pairs' placement order; nan for < 2 pairs
+    rotation_error: float = math.nan  # degrees modulo symmetry, mean over scored matched pairs
+    n_rotation_scored: int = 0
+    off_table_rate: float = math.nan  # predicted centroids off the table surface
+    overlap_rate: float = math.nan  # pairs of predicted footprints that overlap
+    gt_off_table_rate: float = math.nan  # the ground truth's own rates (reference)
+    gt_overlap_rate: float = math.nan
+    missing: str | None = None  # fields the record lacked, e.g. "rotation" (those metrics not scored)
     tokens: float | None = None
     cost_usd: float | None = None
     # Answers of methods that parse model text (zero-shot, fine-tuned VLMs), from the prediction's diagnostics:
@@ -115,18 +138,23 @@ def check_records(path: str | Path, predictions: list[Prediction], ds: Dataset,
     other id needs the episode set). The target must be a trial of the participant in the dataset and
     not one of the episode's context trials. With `one_method`, a file holds one method: a second name
     (a misspelt line) is refused. Errors name file, line and field; malformed `diagnostics.usage` is
-    ignored (counted in a note), never an error.
+    ignored (counted in a note), never an error. A record lacking a field a metric needs (placements without
+    `rotation`) is marked on its Prediction (`MISSING_ATTR`, read by `score_predictions`) and counted in a note.
     """
     path = Path(path)
     try:
-        lines = [n for n, _ in read_jsonl(path)]
+        records = list(read_jsonl(path))
     except DegustaError:
-        lines = []
-    if len(lines) != len(predictions):  # the file changed under us: fall back to record numbers
-        lines = list(range(1, len(predictions) + 1))
+        records = []
+    if len(records) != len(predictions):  # the file changed under us: fall back to record numbers
+        records = [(n, None) for n in range(1, len(predictions) + 1)]
     first_method: tuple[str, int] | None = None
-    bad_usage = 0
-    for lineno, pred in zip(lines, predictions):
+    bad_usage, missing = 0, {}
+    for (lineno, record), pred in zip(records, predictions):
+        lacks = record_missing_fields(record, pred)
+        setattr(pred, MISSING_ATTR, lacks)
+        for name in lacks:
+            missing[name] = missing.get(name, 0) + 1
         where = f"{path}:{lineno}"
         if not isinstance(pred.method, str) or not METHOD_NAME.fullmatch(pred.method):
             raise DegustaError(f"{where}: field 'method': {pred.method!r:.100} is not a safe method name (letters, "
@@ -176,9 +204,27 @@ def check_records(path: str | Path, predictions: list[Prediction], ds: Dataset,
                 raise DegustaError(f"{where}: field 'episode': {pred.episode!r} asks for {k} context trials, but "
                                    f"participant {pred.participant!r} has only {n_trials} trials")
         bad_usage += _malformed_usage(pred.diagnostics)
+    notes = [f"{path}: {count} record(s) have placements without `{name}`: {_MISSING_EFFECT.get(name, name)}."
+             for name, count in missing.items()]
     if bad_usage:
-        return [f"{path}: {bad_usage} record(s) have a malformed `diagnostics.usage` (tokens/cost ignored there)."]
-    return []
+        notes.append(f"{path}: {bad_usage} record(s) have a malformed `diagnostics.usage` (tokens/cost ignored there).")
+    return notes
+
+
+_MISSING_EFFECT = {"rotation": "their rotation error and overlapping footprints (which need the rotation) are not "
+                               "scored (left out of those means), every other metric is"}
+NEEDS = {"rotation": ("rotation_error", "overlap_rate")}
+"""The metrics a missing field leaves unscored."""
+
+
+def record_missing_fields(record, pred: Prediction) -> tuple[str, ...]:
+    """Fields a metric needs that the file record of a scored (not failed) prediction lacks: ("rotation",) when
+    one of its placements has no `rotation` (the reader takes 0 for it, which must not be scored as an answer)."""
+    if pred.failed or not isinstance(record, dict) or not isinstance(record.get("placements"), list):
+        return ()
+    if any(isinstance(p, dict) and "rotation" not in p for p in record["placements"]):
+        return ("rotation",)
+    return ()
 
 
 def score_predictions(ds: Dataset, predictions: list[Prediction],
@@ -190,6 +236,9 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
         predictions: one method's (or several methods') predictions (check them with `check_records`).
         episodes: the episode set, if known; gives context length and task. Without it the context
             length is read from ids of the form ``.../kN`` and the task is "unknown".
+
+    Records `check_records` marked as lacking `rotation` get no rotation error and no overlap rate (nan;
+    `missing` = "rotation").
     """
     for pred in predictions:
         ep = episodes.get(pred.episode) if episodes else None
@@ -198,7 +247,10 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
                                f"trial {pred.target}, but the episode's target is {ep.participant!r} trial {ep.target}")
     gts = [ds.arrangement(pred.participant, pred.target) for pred in predictions]
     rows = []
-    for pred, score in zip(predictions, score_many(ds.catalog, gts, predictions)):
+    for pred, score in zip(predictions, score_many(ds.catalog, gts, predictions, tables=ds.tables)):
+        lacks = getattr(pred, MISSING_ATTR, ())
+        if "rotation" in lacks:  # the reader's 0 is no answer: nothing that depends on it is scored
+            score.rotation_error, score.n_rotation_scored, score.overlap_rate = math.nan, 0, math.nan
         ep = episodes.get(pred.episode) if episodes else None
         if ep is not None:
             context, task = len(ep.context), ep.task
@@ -210,6 +262,11 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
             context=context, task=task, failed=pred.failed or not pred.placements, n_gt=score.n_gt,
             n_pred=score.n_pred, n_matched=score.n_matched, object_accuracy=score.object_accuracy,
             rmsd=score.rmsd, rmsd_unregistered=score.rmsd_unregistered, count_error=score.count_error,
-            set_rmsd=score.set_rmsd, tokens=usage_number(pred.diagnostics, "tokens"),
+            set_rmsd=score.set_rmsd, object_precision=score.object_precision, object_f1=score.object_f1,
+            set_rmsd_unregistered=score.set_rmsd_unregistered, order_tau=score.order_tau,
+            rotation_error=score.rotation_error, n_rotation_scored=score.n_rotation_scored,
+            off_table_rate=score.off_table_rate, overlap_rate=score.overlap_rate,
+            gt_off_table_rate=score.gt_off_table_rate, gt_overlap_rate=score.gt_overlap_rate,
+            missing=" ".join(lacks) or None, tokens=usage_number(pred.diagnostics, "tokens"),
             cost_usd=usage_number(pred.diagnostics, "cost_usd"), **answer_counts(pred.diagnostics)))
     return rows

@@ -1,8 +1,17 @@
 """Per-method summaries with bootstrap intervals: the content of metrics.json.
 
-For each method: `n_episodes`, `failure_rate`, and for each of object_accuracy, rmsd,
-rmsd_unregistered, count_error and set_rmsd a {"mean", "ci_low", "ci_high"} (percentile bootstrap over
-episodes); `acceptable_at` maps "0.01", "0.05", "0.10" to the fraction of episodes whose prediction
+For each method: `n_episodes`, `failure_rate`, and for each of `METRICS` (object_accuracy, rmsd,
+rmsd_unregistered, count_error, set_rmsd, and the task-plan metrics object_precision, object_f1,
+set_rmsd_unregistered, order_tau, rotation_error, off_table_rate, overlap_rate) a {"mean", "ci_low",
+"ci_high"}: a percentile bootstrap that by default resamples participants (all episodes of a participant
+stay together, the statistic is the mean over the resampled participants' episodes; `cluster=None`
+resamples episodes one by one), recorded under `resampling` ({"unit", "n_units", "n_resamples", "seed"}).
+Bounds are null with fewer than two participants. `n_scored` says over how many episodes each metric
+that can be undefined was averaged (order_tau needs two matched objects, rotation_error a scored pair,
+off_table_rate a placement, overlap_rate two; rmsd a non-failed prediction); `ground_truth` holds the
+ground truth's own off-table and overlap rates over the same episodes (the reference for the
+plausibility columns); `missing_fields` counts records that lacked a field (e.g. rotation) a metric
+needs. `acceptable_at` maps "0.01", "0.05", "0.10" to the fraction of episodes whose prediction
 has Kabsch RMSD <= t. A failed or empty prediction has object accuracy 0, is not acceptable at any t
 and is left out of the Kabsch and unregistered RMSD means (which is why failure_rate always stands
 beside them); in the set_rmsd mean it counts as c = SET_PENALTY, the worst score.
@@ -17,19 +26,41 @@ set beside free-text parse rates such as the paper's.
 Ranking (the one order every table and plot uses): non-degenerate methods by mean set_rmsd, lower
 first, then the degenerate ones by the same key; ties keep the given order. `summarize` returns its
 dict in that order; `rank_methods` / `ranked` apply it to any summary.
+
+`paired_comparisons` gives the paired bootstrap differences between methods, resampled the same way
+(participants by default) and with a p-value read off the same resamples as the interval, so a bold
+"interval excludes 0" and p < 0.05 always agree (metrics/bootstrap.py).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import defaultdict
 
 import numpy as np
 
+from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import EpisodeRow
-from degusta_learn.metrics import THRESHOLDS, bootstrap_ci, few_matched_fraction, fraction_acceptable
+from degusta_learn.metrics import (
+    THRESHOLDS,
+    bootstrap_ci,
+    few_matched_fraction,
+    fraction_acceptable,
+    paired_bootstrap,
+)
 
-METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd")
+PAPER_METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd")
+PLAN_METRICS = ("object_precision", "object_f1", "set_rmsd_unregistered", "order_tau", "rotation_error",
+                "off_table_rate", "overlap_rate")
+"""The rest of the task plan (metrics/scores.py, docs/metrics.md "Task plan")."""
+METRICS = PAPER_METRICS + PLAN_METRICS
+MAY_BE_UNDEFINED = ("rmsd", "order_tau", "rotation_error", "off_table_rate", "overlap_rate")
+"""Metrics that are nan on some episodes: `n_scored` counts the episodes each mean is taken over."""
+PAIRED_METRICS = ("set_rmsd", "object_accuracy", "rmsd")
+"""The metrics of the paired comparisons (the same as evaluate/compare.py's)."""
+CLUSTERS = ("participant", None)
+"""What the bootstrap resamples: participants (the default) or, with None, episodes."""
 DEGENERATE_MARK = " (degenerate: ≤2 objects matched)"
 GRAMMAR_MARK = " + grammar"
 """Appended to a method decoded inside the answer grammar: its parse rate is 1 by construction, so compare
@@ -38,10 +69,22 @@ RANKING_NOTE = ("Methods are ranked by mean set RMSD (lower is better); degenera
                 "whatever their scores.")
 
 
-def _interval(values: np.ndarray, n_bootstrap: int, seed: int) -> dict:
+def check_cluster(cluster) -> None:
+    if cluster not in CLUSTERS:
+        raise DegustaError(f"cluster: expected 'participant' (resample participants) or None (resample episodes), "
+                           f"got {cluster!r}")
+
+
+def clusters_of(rows: list[EpisodeRow], cluster: str | None) -> list[str] | None:
+    """The bootstrap's cluster label of each row (its participant), or None for per-episode resampling."""
+    check_cluster(cluster)
+    return None if cluster is None else [r.participant for r in rows]
+
+
+def _interval(values: np.ndarray, n_bootstrap: int, seed: int, clusters=None) -> dict:
     if not np.isfinite(values).any():
         return {"mean": None, "ci_low": None, "ci_high": None}
-    mean, lo, hi = bootstrap_ci(values, n_resamples=n_bootstrap, seed=seed)
+    mean, lo, hi = bootstrap_ci(values, n_resamples=n_bootstrap, seed=seed, clusters=clusters)
     return {"mean": _num(mean), "ci_low": _num(lo), "ci_high": _num(hi)}
 
 
@@ -49,13 +92,39 @@ def _num(x: float) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), 6)
 
 
-def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0) -> dict:
+def _mean(values: list) -> float | None:
+    x = np.array(values, dtype=float)
+    x = x[np.isfinite(x)]
+    return _num(float(x.mean())) if x.size else None
+
+
+def resampling(rows: list[EpisodeRow], n_bootstrap: int, seed: int, cluster: str | None) -> dict:
+    """What the intervals resampled: {"unit": "participant" | "episode", "n_units", "n_resamples", "seed"}."""
+    check_cluster(cluster)
+    n_units = len({r.participant for r in rows}) if cluster else len(rows)
+    return {"unit": cluster or "episode", "n_units": n_units, "n_resamples": n_bootstrap, "seed": seed}
+
+
+def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0,
+                   cluster: str | None = "participant") -> dict:
     """Summary of one method's rows (see module docstring)."""
+    clusters = clusters_of(rows, cluster)
     out: dict = {"n_episodes": len(rows),
-                 "failure_rate": round(sum(r.failed for r in rows) / len(rows), 6) if rows else None}
+                 "failure_rate": round(sum(r.failed for r in rows) / len(rows), 6) if rows else None,
+                 "resampling": resampling(rows, n_bootstrap, seed, cluster)}
     for name in METRICS:
         values = np.array([getattr(r, name) for r in rows], dtype=float)
-        out[name] = _interval(values, n_bootstrap, seed)
+        out[name] = _interval(values, n_bootstrap, seed, clusters)
+    out["n_scored"] = {name: int(np.isfinite(np.array([getattr(r, name) for r in rows], dtype=float)).sum())
+                       for name in MAY_BE_UNDEFINED}
+    out["ground_truth"] = {"off_table_rate": _mean([r.gt_off_table_rate for r in rows]),
+                           "overlap_rate": _mean([r.gt_overlap_rate for r in rows])}
+    missing: dict[str, int] = {}
+    for r in rows:
+        for name in (r.missing or "").split():
+            missing[name] = missing.get(name, 0) + 1
+    if missing:
+        out["missing_fields"] = missing
     scored = [r for r in rows if not r.failed]
     # Kabsch RMSD is ~0 by construction with 1-2 matched objects: say how often that happens.
     out["few_objects_rate"] = round(sum(r.n_matched <= 2 for r in scored) / len(scored), 6) if scored else None
@@ -100,20 +169,73 @@ def _answer_rates(rows: list[EpisodeRow]) -> dict:
     return out
 
 
-def summarize(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0) -> dict[str, dict]:
-    """{method: summary}, with `by_context` per method when several context lengths are present."""
+def summarize(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 0,
+              cluster: str | None = "participant") -> dict[str, dict]:
+    """{method: summary}, with `by_context` per method when several context lengths are present.
+
+    `cluster`: "participant" (default) resamples participants for every interval, None resamples episodes.
+    """
+    check_cluster(cluster)
     by_method: dict[str, list[EpisodeRow]] = defaultdict(list)
     for r in rows:
         by_method[r.method].append(r)
     result = {}
     for method, mrows in by_method.items():
-        summary = summarize_rows(mrows, n_bootstrap, seed)
+        summary = summarize_rows(mrows, n_bootstrap, seed, cluster)
         contexts = sorted({r.context for r in mrows if r.context is not None})
         if len(contexts) > 1:
-            summary["by_context"] = {str(k): summarize_rows([r for r in mrows if r.context == k], n_bootstrap, seed)
-                                     for k in contexts}
+            summary["by_context"] = {str(k): summarize_rows([r for r in mrows if r.context == k], n_bootstrap, seed,
+                                                            cluster) for k in contexts}
         result[method] = summary
     return ranked(result)
+
+
+def paired_comparisons(rows: list[EpisodeRow], methods: list[str], n_bootstrap: int = 1000, seed: int = 0,
+                       cluster: str | None = "participant", metrics: tuple[str, ...] = PAIRED_METRICS) -> list[dict]:
+    """Paired bootstrap differences (b - a) per metric for every pair of methods on their shared episodes.
+
+    Pairs follow the order of `methods` (pass them ranked: a is then the better-ranked method). Each entry is
+    {"a", "b", "resampling": {...}, metric: {"diff", "lo", "hi", "p_value"} or None (fewer than 2 complete
+    pairs)}. With `cluster="participant"` participants are resampled with all their episodes; the p-value and
+    the interval come from the same resamples (bold "excludes 0" <=> p < 0.05).
+    """
+    check_cluster(cluster)
+    by = {m: {r.episode: r for r in rows if r.method == m} for m in methods}
+    out = []
+    for a, b in itertools.combinations(methods, 2):
+        eps = sorted(set(by[a]) & set(by[b]))
+        shared = [by[a][e] for e in eps]
+        entry: dict = {"a": a, "b": b, "resampling": resampling(shared, n_bootstrap, seed, cluster)}
+        for metric in metrics:
+            va = np.array([getattr(by[a][e], metric) for e in eps], dtype=float)
+            vb = np.array([getattr(by[b][e], metric) for e in eps], dtype=float)
+            ok = np.isfinite(va) & np.isfinite(vb)
+            labels = None if cluster is None else [r.participant for r, keep in zip(shared, ok) if keep]
+            entry[metric] = (paired_bootstrap(vb[ok], va[ok], n_resamples=n_bootstrap, seed=seed,  # mean(b - a)
+                                              clusters=labels) if ok.sum() >= 2 else None)
+        out.append(entry)
+    return out
+
+
+def resampling_line(unit: str, n_units: int | None = None, n_resamples: int | None = None,
+                    paired: bool = False) -> str:
+    """The one line under a report's tables that says what the intervals (and paired tests) resampled."""
+    tests = " and the paired tests" if paired else ""
+    count = f"{n_resamples} resamples" if n_resamples else "resamples"
+    if unit == "participant":
+        who = f"the {n_units} participants" if n_units else "the participants"
+        return (f"Intervals{tests}: 95% percentile bootstrap over participants ({count} of {who}, drawn with "
+                "replacement, each with all of its episodes; the statistic is the mean over their episodes).")
+    return (f"Intervals{tests}: 95% percentile bootstrap over episodes ({count}, episodes drawn one by one: "
+            "per-episode resampling, which treats episodes of one participant as independent).")
+
+
+def resampling_of(summary: dict[str, dict]) -> dict:
+    """The `resampling` record shared by a summary's methods (the first method's; {} for an old summary)."""
+    for s in summary.values():
+        if isinstance(s.get("resampling"), dict):
+            return s["resampling"]
+    return {}
 
 
 def rank_methods(summary: dict[str, dict]) -> list[str]:

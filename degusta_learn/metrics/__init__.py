@@ -2,12 +2,16 @@
 
 See docs/metrics.md. Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0), so
 unregistered RMSD, count error and the set-aware `set_rmsd` (unmatched objects cost SET_PENALTY each;
-used to rank methods) are always reported beside it.
+used to rank methods) are always reported beside it. The rest of the task plan: object precision and F1
+(beside accuracy, the recall), placement order (Kendall's tau, plan.py), rotation modulo each object's
+symmetry (plan.py), the unregistered set RMSD, and physical plausibility: centroids off the table and
+overlapping footprints (plausibility.py). Intervals and paired tests resample participants when given
+`clusters` (bootstrap.py).
 
 Usage:
     from degusta_learn.metrics import score_many, bootstrap_ci, fraction_acceptable
-    scores = score_many(ds.catalog, gts, predictions)
-    mean, lo, hi = bootstrap_ci([s.rmsd for s in scores])
+    scores = score_many(ds.catalog, gts, predictions, tables=ds.tables)
+    mean, lo, hi = bootstrap_ci([s.rmsd for s in scores], clusters=[gt.participant for gt in gts])
 """
 
 from degusta_learn.metrics.acceptability import (
@@ -17,9 +21,29 @@ from degusta_learn.metrics.acceptability import (
     acceptability_curve,
     fraction_acceptable,
 )
-from degusta_learn.metrics.bootstrap import bootstrap_ci, paired_bootstrap
+from degusta_learn.metrics.bootstrap import (
+    bootstrap_ci,
+    bootstrap_means,
+    n_clusters,
+    paired_bootstrap,
+    percentile_p_value,
+)
 from degusta_learn.metrics.kabsch import kabsch_rmsd, kabsch_rmsd_batch, kabsch_transform, unregistered_rmsd
 from degusta_learn.metrics.matching import feature_table, match, match_costs
+from degusta_learn.metrics.plan import (
+    SHAPE_SYMMETRY,
+    TYPE_SYMMETRY,
+    UNKNOWN_SYMMETRY,
+    kendall_tau,
+    rotation_errors,
+    symmetry_order,
+)
+from degusta_learn.metrics.plausibility import (
+    OVERLAP_FRACTION,
+    footprint_overlap,
+    off_table_rates,
+    overlap_rates,
+)
 from degusta_learn.metrics.scores import (
     EpisodeScore,
     MatchedPair,
@@ -35,8 +59,11 @@ from degusta_learn.metrics.set_score import (
 )
 
 __all__ = [
-    "DEGENERATE_FRACTION", "PAPER_ACCEPTABILITY", "PAPER_MOGMA_FRACTION", "SET_PENALTY", "THRESHOLDS",
-    "EpisodeScore", "MatchedPair", "acceptability_curve", "bootstrap_ci", "feature_table", "few_matched_fraction",
-    "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch", "kabsch_transform", "match", "match_costs",
-    "matched_pairs", "paired_bootstrap", "score_many", "score_prediction", "set_rmsd_points", "unregistered_rmsd",
+    "DEGENERATE_FRACTION", "OVERLAP_FRACTION", "PAPER_ACCEPTABILITY", "PAPER_MOGMA_FRACTION", "SET_PENALTY",
+    "SHAPE_SYMMETRY", "THRESHOLDS", "TYPE_SYMMETRY", "UNKNOWN_SYMMETRY",
+    "EpisodeScore", "MatchedPair", "acceptability_curve", "bootstrap_ci", "bootstrap_means", "feature_table",
+    "few_matched_fraction", "footprint_overlap", "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch",
+    "kabsch_transform", "kendall_tau", "match", "match_costs", "matched_pairs", "n_clusters", "off_table_rates",
+    "overlap_rates", "paired_bootstrap", "percentile_p_value", "rotation_errors", "score_many", "score_prediction",
+    "set_rmsd_points", "symmetry_order", "unregistered_rmsd",
 ]

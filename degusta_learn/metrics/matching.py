@@ -35,7 +35,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.scene.catalog import MATCH_FEATURES, UNORDERED_PAIRS, Catalog
+from degusta_learn.metrics.plan import symmetry_order
+from degusta_learn.scene.catalog import MATCH_FEATURES, UNORDERED_PAIRS, Catalog, object_size
 
 _TABLE_MAX_OBJECTS = 2048  # pairwise table up to 2048^2 int8 = 4 MiB; larger catalogs compare features
 _CACHE: dict[int, tuple[weakref.ref, FeatureTable]] = {}
@@ -59,7 +60,8 @@ def hamming(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
 
 
 class FeatureTable:
-    """Per-catalog lookup: object id -> row, and the pairwise Hamming distances between rows."""
+    """Per-catalog lookup: object id -> row, the pairwise Hamming distances between rows, and per row the
+    object's rotational symmetry order (`plan.symmetry_order`) and footprint (width, length)."""
 
     def __init__(self, catalog: Catalog):
         ids = np.asarray(catalog.ids, dtype=np.int64)
@@ -72,9 +74,26 @@ class FeatureTable:
         self._sorted = ids[self._order]
         self.row_of = {int(i): r for r, i in enumerate(ids.tolist())}  # fast path for a few ids
         self.features = catalog.features(ids)  # (K, F)
+        self._objects = tuple(getattr(catalog, "objects", ()))  # rows in catalog order (for symmetry, sizes)
+        self._symmetry: np.ndarray | None = None
+        self._sizes: np.ndarray | None = None
         self.hamming = None
         if len(ids) <= _TABLE_MAX_OBJECTS:
             self.hamming = hamming(self.features, self.features).astype(np.int8)  # (K, K)
+
+    @property
+    def symmetry(self) -> np.ndarray:
+        """(K,) rotational symmetry order per row (`plan.symmetry_order`; built on first use)."""
+        if self._symmetry is None:
+            self._symmetry = np.array([symmetry_order(o) for o in self._objects], dtype=np.int64).reshape(-1)
+        return self._symmetry
+
+    @property
+    def sizes(self) -> np.ndarray:
+        """(K, 2) footprint (width, length) per row (`scene.object_size`; built on first use)."""
+        if self._sizes is None:
+            self._sizes = np.array([object_size(o) for o in self._objects], dtype=float).reshape(-1, 2)
+        return self._sizes
 
     def rows(self, ids, what: str) -> np.ndarray:
         """Rows of `ids` (any shape); DegustaError naming the first id the catalog lacks."""
