@@ -70,16 +70,16 @@ def main() -> None:
     ep_file = out / "episodes_test_k2.jsonl"
     write_episodes(ep_file, episodes)
     common = [f"dataset={args.dataset}", f"episodes={ep_file}"]
-    hf = common + ["backend.adapter=null", "backend.image_size=64", "image_size=224", "backend.max_tokens=512",
+    hf = common + ["model.adapter=null", "model.image_size=64", "render_size=224", "decoding.max_new_tokens=512",
                    "cache='off'"]
     runs = {
         "tiny VLM, trained from scratch (constrained)": ("configs/predict_hf_tiny_zeroshot.yaml",
-                                                         hf + [f"backend.model={run / 'model'}"]),
+                                                         hf + [f"model.name={run / 'model'}"]),
         "tiny VLM, trained from scratch (unconstrained)": ("configs/predict_hf_tiny_zeroshot.yaml",
-                                                           hf + [f"backend.model={run / 'model'}",
-                                                                 "backend.constrained=false"]),
+                                                           hf + [f"model.name={run / 'model'}",
+                                                                 "decoding.constrained=false"]),
         "tiny VLM, untrained (constrained)": ("configs/predict_hf_tiny_zeroshot.yaml",
-                                             hf + ["backend.model=runs/tiny/idefics3_scratch"]),
+                                             hf + ["model.name=runs/tiny/idefics3_scratch"]),
         "population_mean": ("configs/baseline_population_mean.yaml", common),
         "random": ("configs/baseline_random.yaml", common),
     }

@@ -8,7 +8,7 @@ Per replica (degusta_learn/vlm/random_models/replicas.py: published sizes, rando
   2. the config itself, on the CPU, through `degusta_learn.methods.run_train` with overrides: the replica
      as model.name, fp32 (model.dtype=float32, trainer.precision=32-true), trainer.max_steps=2 with
      trainer.accumulate_grad_batches=1 (2 optimizer steps = 2 batches of the config's batch size),
-     data.max_train_episodes = 2 batches, data.val_episodes=1, eval.max_new_tokens small (one constrained
+     data.max_train_episodes = 2 batches, data.val_episodes=1, decoding.max_new_tokens small (one constrained
      validation generation), data.num_workers=0 (one process: its RSS is the whole run). Each training run
      is a fresh subprocess: peak RSS (a 20 ms sampling thread on /proc/self/status and getrusage's
      ru_maxrss) covers only that replica; seconds per step = on_train_batch_start -> on_train_batch_end.
@@ -97,7 +97,7 @@ def overrides(name: str, replica: Path, data: Path, runs: Path, batch_size: int 
             f"trainer.max_steps={steps}", "trainer.accumulate_grad_batches=1", "trainer.val_check_interval=1.0",
             "trainer.log_every_n_steps=1", "trainer.progress_bar=false", f"trainer.run_dir={runs}",
             f"trainer.run_name={run_name or name}", f"data.batch_size={bs}", f"data.max_train_episodes={steps * bs}",
-            f"eval.max_new_tokens={new_tokens}", "eval.report_unconstrained=false"] + (
+            f"decoding.max_new_tokens={new_tokens}", "decoding.report_unconstrained=false"] + (
             [] if checkpointing is None else [f"model.gradient_checkpointing={str(checkpointing).lower()}"])
 
 
@@ -228,7 +228,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", type=Path, default=None,
                     help="SmolVLM-256M-Instruct's real tokenizer/processor folder (SmolVLM replicas use it)")
     ap.add_argument("--batch-size", type=int, default=None, help="override data.batch_size (default: the config's)")
-    ap.add_argument("--new-tokens", type=int, default=256, help="eval.max_new_tokens of the validation generation")
+    ap.add_argument("--new-tokens", type=int, default=256, help="decoding.max_new_tokens of the validation generation")
     ap.add_argument("--skip-train", action="store_true", help="token counts and dry runs only")
     ap.add_argument("--gradient-checkpointing", choices=["on", "off"], default=None,
                     help="override the config's model.gradient_checkpointing (results under NAME+gc / NAME-gc)")

@@ -16,7 +16,7 @@ Usage:
     python benchmarks/bench_vlm.py --reuse                 # re-score: keep finished runs and predictions
     python benchmarks/bench_vlm.py --modes lora --set trainer.max_steps=261 --out runs/bench_vlm_3ep
         # --set: fine-tuning overrides (here three epochs instead of one)
-    python benchmarks/bench_vlm.py --modes lora --reuse --predict-set n=5 --predict-set temperature=1.0 --out OUT
+    python benchmarks/bench_vlm.py --modes lora --reuse --predict-set decoding.n=5 --predict-set decoding.temperature=1.0 --out OUT
         # --predict-set: the fine-tuned row's predict overrides (here 5 sampled answers aggregated)
     python benchmarks/bench_vlm.py --modes lora --seeds 0 1 --out OUT
         # one fine-tune per training seed (`trainer.seed`; the participant split stays): a row per seed, and a
@@ -105,7 +105,7 @@ def main() -> None:
     ap.add_argument("--val-every", type=int, default=29,
                     help="fine-tuning steps between validations (the learning curve's points; 29: three an epoch)")
     ap.add_argument("--predict-set", dest="predict_overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="a predict config override for the fine-tuned rows, e.g. n=5 (repeatable)")
+                    help="a predict config override for the fine-tuned rows, e.g. decoding.n=5 (repeatable)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="a fine-tuning config override for both runs, e.g. trainer.max_steps=261 (repeatable)")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0],
@@ -138,7 +138,7 @@ def main() -> None:
         path = out / "predictions" / f"{name}.jsonl"
         if not (args.reuse and path.is_file()):
             t0 = time.time()
-            run_predict(config, common + [f"out={path}", f"backend.model={args.base}"] + extra)
+            run_predict(config, common + [f"out={path}", f"model.name={args.base}"] + extra)
             seconds[f"predict {name}"] = time.time() - t0
         preds[name] = read_predictions(path, ds.catalog)
 
@@ -158,10 +158,10 @@ def main() -> None:
             seconds[f"fine-tune {name}"] = time.time() - t0
         if mode == "lora":
             hf(name, "configs/predict_hf_base_finetuned.yaml",
-               [f"backend.adapter={run_dir / 'adapter'}"] + args.predict_overrides)
+               [f"model.adapter={run_dir / 'adapter'}"] + args.predict_overrides)
         else:
             hf(name, "configs/predict_hf_base_zeroshot.yaml",
-               [f"backend.model={run_dir / 'model'}"] + args.predict_overrides)
+               [f"model.name={run_dir / 'model'}"] + args.predict_overrides)
             preds[name] = read_predictions(out / "predictions" / f"{name}.jsonl", ds.catalog)
     for name in BASELINES:
         spec = get_method(name)

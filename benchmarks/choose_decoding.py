@@ -1,12 +1,12 @@
 """Choose a decoding on the validation participants, then score only that one on the test episodes.
 
-A fine-tune's answers to the same prompts can become one plan in several ways (`task/aggregate.py`): the greedy
-answer, the paper's per-step modes, object votes, the greedy answer lengthened by votes (`greedy_votes`), that
-with each of the greedy answer's objects placed from every answer naming it (`greedy_votes` + `pooled`), and that at
-the context tables' median count (`greedy_votes_context`, which reads the episodes' contexts from the dataset). One
-`degusta predict` run with `aggregation: greedy_votes` stores everything they need per episode (the n sampled
-answers in `diagnostics.responses`, the greedy one in `diagnostics.greedy_response`), so every way is scored from
-the same answers here, without asking the model again.
+A fine-tune's answers to the same prompts can become one plan in the ways `degusta predict` offers
+(`task/aggregate.py`): the greedy answer alone (`n: 1, temperature: 0`), the paper's per-step modes of the samples
+(`steps`), and the greedy answer lengthened by the samples' votes, every object placed from every answer naming it
+(`greedy_votes_pooled`). One `degusta predict` run with `aggregation: greedy_votes_pooled` stores everything they
+need per episode (the n sampled answers in `diagnostics.responses`, the greedy one in
+`diagnostics.greedy_response`), so every way is scored from the same answers here, without asking the model
+again.
 
 Run it on predictions of the validation participants (`--split val`: the last weights, `adapter/`, of runs without
 early stopping may be predicted there; docs/finetune.md, the leakage guard) to choose, by `--by` (default: the
@@ -16,9 +16,9 @@ mean over the seeds, which the paired tests against `population_mean` use (nan w
 
 Usage:
     degusta predict --config configs/predict_hf_base_finetuned.yaml --set split=val \\
-        --set backend.adapter=RUN/adapter --set out=OUT/val_s0.jsonl            # one per seed
+        --set model.adapter=RUN/adapter --set out=OUT/val_s0.jsonl              # one per seed
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split val OUT/val_s0.jsonl OUT/val_s1.jsonl
-    python benchmarks/choose_decoding.py --dataset data/naturalistic --split test --only votes TEST_s0.jsonl ...
+    python benchmarks/choose_decoding.py --dataset data/naturalistic --split test --only steps TEST_s0.jsonl ...
     python benchmarks/choose_decoding.py ... --samples 5 VAL_n9_s0.jsonl   # n = 5 from a run with n = 9
 """
 
@@ -30,7 +30,7 @@ import dataclasses
 import numpy as np
 
 METRICS = ("object_accuracy", "rmsd", "set_rmsd", "count_error", "n_pred")
-WAYS = ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled", "greedy_votes_context")
+WAYS = ("greedy", "steps", "greedy_votes_pooled")
 """The aggregations `decodings` scores, in its order."""
 LOWER_IS_BETTER = {"rmsd": True, "set_rmsd": True, "count_error": True, "object_accuracy": False}
 
@@ -47,13 +47,11 @@ def parsed(text, catalog, grid):
         return None
 
 
-def decodings(prediction, catalog, grid, samples: int | None = None,
-              context_counts: list[int] | None = None) -> dict[str, list]:
-    """Every way's placements for one prediction of a greedy_votes run; `samples`: from its first that many sampled
-    answers only (what a run with that `n` would have combined: predict samples answer i with the same seed
-    whatever n is), all of them when None; `context_counts`: the episode's context tables' object counts
-    (greedy_votes_context's length; None: the samples' median, as predict does for an episode without context)."""
-    from degusta_learn.task.aggregate import aggregate, aggregate_votes, anchored_votes, context_length
+def decodings(prediction, catalog, grid, samples: int | None = None) -> dict[str, list]:
+    """Every way's placements for one prediction of a greedy_votes_pooled run; `samples`: from its first that many
+    sampled answers only (what a run with that `n` would have combined: predict samples answer i with the same seed
+    whatever n is), all of them when None."""
+    from degusta_learn.task.aggregate import aggregate, anchored_votes
 
     diag = prediction.diagnostics or {}
     stored = diag.get("responses") or []
@@ -64,21 +62,17 @@ def decodings(prediction, catalog, grid, samples: int | None = None,
     greedy = parsed(diag.get("greedy_response"), catalog, grid)
     if not answers or "greedy_response" not in diag:
         raise SystemExit(f"error: episode {prediction.episode}: no stored answers (predict with n > 1 and "
-                         "aggregation: greedy_votes)")
+                         "aggregation: greedy_votes_pooled)")
     return {
         "greedy": anchored_votes(greedy, [], "grid", grid)[0] if greedy is not None else [],
         "steps": aggregate(answers, "grid", grid)[0],
-        "votes": aggregate_votes(answers, "grid", grid)[0],
-        "greedy_votes": anchored_votes(greedy, answers, "grid", grid)[0],
-        "greedy_votes_pooled": anchored_votes(greedy, answers, "grid", grid, pooled=True)[0],
-        "greedy_votes_context": anchored_votes(greedy, answers, "grid", grid, pooled=True,
-                                               length=context_length(context_counts))[0],
+        "greedy_votes_pooled": anchored_votes(greedy, answers, "grid", grid)[0],
     }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("predictions", nargs="+", help="greedy_votes predictions, one file per training seed")
+    ap.add_argument("predictions", nargs="+", help="greedy_votes_pooled predictions, one file per training seed")
     ap.add_argument("--dataset", required=True)
     ap.add_argument("--split", required=True, choices=["val", "test"])
     ap.add_argument("--context", type=int, default=4)
@@ -116,8 +110,7 @@ def main() -> None:
         if missing:
             raise SystemExit(f"error: {path} lacks {len(missing)} of the {len(order)} {args.split} episodes "
                              f"(context {args.context}, seed {args.seed}; first: {missing[0]})")
-        ways = {e.id: decodings(by[e.id], ds.catalog, grid, args.samples,
-                                   ds.object_counts(e.participant, e.context)) for e in episodes}
+        ways = {e.id: decodings(by[e.id], ds.catalog, grid, args.samples) for e in episodes}
         names = [args.only] if args.only else WAYS
         runs.append({w: scores([dataclasses.replace(by[i], placements=ways[i][w]) for i in order]) for w in names})
     base = scores([pop[i] for i in order])

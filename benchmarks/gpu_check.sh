@@ -46,7 +46,7 @@ stage tiny_train "${T_TINY_TRAIN:-120}" "${degusta[@]}" train --config configs/f
 find "$WORK/runs/tiny_gpu" -name metrics.csv -exec cp {} "$OUT/tiny_gpu_metrics.csv" \; 2>/dev/null
 
 stage tiny_predict "${T_TINY_PREDICT:-80}" "${degusta[@]}" predict --config configs/predict_hf_base_finetuned.yaml \
-    --set dataset="$DATA" --set backend.adapter="$WORK/runs/tiny_gpu/best_adapter" --set backend.device=cuda \
+    --set dataset="$DATA" --set model.adapter="$WORK/runs/tiny_gpu/best_adapter" --set backend.device=cuda \
     --set out="$OUT/tiny_gpu.jsonl" ${EPISODES:+--set episodes="$(realpath "$EPISODES")"}
 cp -r "$WORK/runs/tiny_gpu/best_adapter" "$OUT/tiny_gpu_best_adapter" 2>/dev/null
 

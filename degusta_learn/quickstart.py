@@ -172,8 +172,8 @@ def run_quickstart(out: str | Path = "quickstart", small: bool = False, with_api
     for name, adapter in ((f"{row}_zeroshot", None), (f"{row}_finetuned", ft_dir / "best_adapter")):
         cfg_name = "predict_hf_base_" + ("zeroshot" if adapter is None else "finetuned")
         quick = (SMALL_PREDICT if small else QUICK_FINETUNED_PREDICT) if adapter is not None else []
-        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"backend.model={BASE_NAME}",
-                                           f"backend.adapter={adapter if adapter else 'null'}",
+        path = _config(cfg_name, cfg_dir, [f"dataset={data_dir}", f"model.name={BASE_NAME}",
+                                           f"model.adapter={adapter if adapter else 'null'}",
                                            f"out={runs / name / 'predictions.jsonl'}"] + quick, "degusta predict")
         entries.append(MethodEntry(name=name, config=str(path)))
 
@@ -204,11 +204,12 @@ config trains on context 4 alone, what the test split is scored on; at context 0
 contexts), in batches of similar length (the three contexts mixed pad a random batch most: 195 s instead of 283 s),
 validated once at its end on 8 episodes (the best_adapter the predict config loads). benchmarks/RESULTS.md, "Main
 job", has what each choice measured."""
-QUICK_FINETUNED_PREDICT = ["backend.report_unconstrained=false"]
+QUICK_FINETUNED_PREDICT = ["decoding.report_unconstrained=false"]
 """The fine-tuned row's answers as the shipped predict config decodes them (greedy + votes of five samples), without
 the free answers behind the free parse rate (~30% of its decoding time; the report shows none for that row)."""
 SMALL_FINETUNE = ["trainer.max_steps=4", "data.val_episodes=2", "trainer.val_check_interval=4", "data.contexts=[0,2,4]"]
-SMALL_PREDICT = ["backend.report_unconstrained=false", "n=1", "temperature=0.0", "aggregation=steps"]
+SMALL_PREDICT = ["decoding.report_unconstrained=false", "decoding.n=1", "decoding.temperature=0.0",
+                 "decoding.aggregation=steps"]
 """--small decodes the fine-tuned row greedily, once: the pipeline is tested, the score is not the point."""
 
 

@@ -1,5 +1,5 @@
-"""benchmarks/choose_decoding.py: every way of combining one greedy_votes run's stored answers, scored from the same
-answers, and the choice made on a score that a short answer cannot game."""
+"""benchmarks/choose_decoding.py: every way of combining one greedy_votes_pooled run's stored answers, scored from the
+same answers, and the choice made on a score that a short answer cannot game."""
 
 import sys
 
@@ -8,7 +8,7 @@ from benchmark_support import load_benchmark
 
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Prediction, load_dataset, make_episodes, write_predictions
-from degusta_learn.task.aggregate import aggregate_votes, anchored_votes, combine
+from degusta_learn.task.aggregate import aggregate, anchored_votes, combine
 from degusta_learn.task.answer_format import answer_items, format_answer
 
 bench = load_benchmark("choose_decoding")
@@ -16,7 +16,7 @@ G = Grid(8, 8)
 
 
 def _run(ds, split: str, answers) -> list[Prediction]:
-    """A greedy_votes predictions file: per episode the greedy answer and five samples, as `answers(truth)` says."""
+    """A greedy_votes_pooled predictions file: per episode the greedy answer and five samples, as `answers(truth)` says."""
     out = []
     for e in make_episodes(ds, 4, split, 0):
         truth = answer_items(ds.arrangement(e.participant, e.target).placements, ds.catalog, "grid", G)
@@ -34,17 +34,11 @@ def test_each_way_is_the_librarys_aggregation_of_the_stored_answers(small_datase
         "responses": [format_answer(s, "grid") for s in samples] + ["not an answer"],
         "greedy_response": format_answer(truth[:2], "grid")})
     ways = bench.decodings(pred, small_dataset.catalog, G)
-    assert tuple(ways) == bench.WAYS == ("greedy", "steps", "votes", "greedy_votes", "greedy_votes_pooled",
-                                         "greedy_votes_context")
-    assert ways["votes"] == aggregate_votes(samples, "grid", G)[0]
-    assert ways["greedy_votes"] == anchored_votes(truth[:2], samples, "grid", G)[0]
-    assert ways["greedy_votes_pooled"] == anchored_votes(truth[:2], samples, "grid", G, pooled=True)[0]
-    assert ways["greedy_votes_context"] == ways["greedy_votes_pooled"]  # no context counts: the samples' median
+    assert tuple(ways) == bench.WAYS == ("greedy", "steps", "greedy_votes_pooled")
+    assert ways["steps"] == aggregate(samples + [None], "grid", G)[0] == combine(samples, "grid", G)[0]
+    assert ways["greedy_votes_pooled"] == anchored_votes(truth[:2], samples, "grid", G)[0] == combine(
+        samples, "grid", G, how="greedy_votes_pooled", anchor=truth[:2])[0]
     assert [p.object for p in ways["greedy"]] == [it.id for it in truth[:2]]
-    one = bench.decodings(pred, small_dataset.catalog, G, context_counts=[1, 1, 2])["greedy_votes_context"]
-    assert one == ways["greedy_votes_pooled"][:1]  # the context tables' median count: 1
-    assert len(truth) >= 3 and combine(samples, "grid", G, how="greedy_votes_context", anchor=truth[:2],
-                                       context_counts=[3, 3, 5, 2])[0] == one + ways["greedy_votes_pooled"][1:3]
 
 
 def test_the_choice_is_made_on_the_set_score_not_on_short_answers(small_dataset_dir, tmp_path, monkeypatch, capsys):
@@ -57,8 +51,8 @@ def test_the_choice_is_made_on_the_set_score_not_on_short_answers(small_dataset_
     bench.main()
     out = capsys.readouterr().out
     assert "chosen by set_rmsd (mean over the files): greedy\n" in out
-    votes = next(line for line in out.splitlines() if line.startswith("| votes |"))
-    assert votes.split(" | ")[5] == "1.00"  # one object an answer
+    steps = next(line for line in out.splitlines() if line.startswith("| steps |"))
+    assert steps.split(" | ")[5] == "1.00"  # one object an answer
     monkeypatch.setattr(sys, "argv", ["choose_decoding.py", str(path), "--dataset", str(small_dataset_dir),
                                       "--split", "test"])
     with pytest.raises(SystemExit, match=r"lacks \d+ of the \d+ test episodes"):
@@ -73,8 +67,8 @@ def test_samples_combines_the_first_k_stored_answers_as_a_run_with_that_n_would(
         "responses": [format_answer(s, "grid") for s in samples], "greedy_response": format_answer(truth[:1], "grid")})
     assert len(truth) > 1
     first3 = bench.decodings(pred, small_dataset.catalog, G, samples=3)
-    assert first3["greedy_votes"] == anchored_votes(truth[:1], samples[:3], "grid", G)[0]
-    assert len(first3["greedy_votes"]) == len(truth)
-    assert len(bench.decodings(pred, small_dataset.catalog, G)["greedy_votes"]) == 1
+    assert first3["greedy_votes_pooled"] == anchored_votes(truth[:1], samples[:3], "grid", G)[0]
+    assert len(first3["greedy_votes_pooled"]) == len(truth)
+    assert len(bench.decodings(pred, small_dataset.catalog, G)["greedy_votes_pooled"]) == 1
     with pytest.raises(SystemExit, match=r"5 sampled answers stored, --samples 6 asked"):
         bench.decodings(pred, small_dataset.catalog, G, samples=6)

@@ -20,7 +20,7 @@ def test_only_the_documented_fine_tuning_run_writes_the_learning_curve_figure():
     documented = dict(base=str(BASE_DIR), episodes=None, overrides=[], predict_overrides=[], out="runs/b")
     assert bench.curve_path(Namespace(**documented)) == "docs/images/vlm_learning_curve.png"
     for change in ({"base": "/work/pilots/base_tr3"}, {"episodes": 20}, {"overrides": ["data.context_answers=true"]},
-                   {"predict_overrides": ["backend.on_repeat=stop"]}):
+                   {"predict_overrides": ["decoding.on_repeat=stop"]}):
         assert bench.curve_path(Namespace(**{**documented, **change})) == "runs/b/learning_curve.png", change
 
 

@@ -1,5 +1,5 @@
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 import pytest
 
@@ -87,6 +87,43 @@ def test_errors_name_the_key(tmp_path, text, sets, message):
     with pytest.raises(DegustaError) as err:
         load_config(Outer, p, sets)
     assert message in str(err.value)
+
+
+@dataclass
+class Pruned:
+    REMOVED: ClassVar[dict[str, str]] = {"old_weight": "the old loss; no shipped recipe used it"}
+    kept: int = 1
+
+
+@dataclass
+class WithPruned:
+    section: Pruned = field(default_factory=Pruned)
+
+
+def test_a_removed_key_is_refused_in_one_line_that_says_it_was_removed_and_why(tmp_path):
+    p = tmp_path / "x.yaml"
+    p.write_text("section:\n  kept: 2\n  old_weight: 0.0\n")
+    with pytest.raises(DegustaError) as err:
+        load_config(WithPruned, p)
+    assert str(err.value) == f"{p}: section.old_weight: removed (the old loss; no shipped recipe used it)"
+    with pytest.raises(DegustaError, match="^config: section.old_weight: removed"):
+        load_config(WithPruned, None, ["section.old_weight=1"])
+    with pytest.raises(DegustaError, match="unknown key 'section.other'"):  # other unknown keys: as before
+        load_config(WithPruned, None, ["section.other=1"])
+
+
+def test_the_pretrain_configs_removed_keys_say_why(tmp_path):
+    from degusta_learn.pretrain.config import PretrainConfig
+
+    p = tmp_path / "old.yaml"
+    p.write_text("kind: pretrain\ndata:\n  teacher_weight: 0.0\n")
+    with pytest.raises(DegustaError) as err:
+        load_config(PretrainConfig, p)
+    assert str(err.value) == (f"{p}: data.teacher_weight: removed (the oracle teacher's pull on the tower's tokens; "
+                              "no shipped recipe used it)")
+    for key in ("freeze_projector", "retrieval_list_items"):
+        with pytest.raises(DegustaError, match=f"^config: data.{key}: removed \\(.+; no shipped recipe used it\\)$"):
+            load_config(PretrainConfig, None, [f"data.{key}=false"])
 
 
 def test_atomic_writes_have_normal_permissions_and_leave_nothing_on_error(tmp_path):

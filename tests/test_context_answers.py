@@ -129,6 +129,7 @@ def test_the_hf_backend_writes_the_contexts_out_when_asked_whatever_the_training
     from degusta_learn.prompting.backends.base import backend_config
     from degusta_learn.prompting.backends.hf import HFBackend
     from degusta_learn.vlm import generate
+    from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
     ds, episode, renderer = setting
     prompt = build_prompt("mogma", ds, episode, renderer, Grid(8, 8))
@@ -138,7 +139,8 @@ def test_the_hf_backend_writes_the_contexts_out_when_asked_whatever_the_training
     for value, lines in ((None, 0), (True, 2), (False, 0)):
         HFBackend(model, device="cpu", context_answers=value).complete(prompt, 1, 0.0, 64)
         assert len(_answer_lines(seen[-1])) == lines
-    keys = [backend_config("hf", model=model, context_answers=v).answer_fields() for v in (None, True)]
+    settings = (ModelSettings(name=model), DecodingSettings(constrained=False))
+    keys = [backend_config("hf", context_answers=v).answer_fields(*settings) for v in (None, True)]
     assert keys[0]["context_answers"] is None and keys[1]["context_answers"] is True
     with pytest.raises(DegustaError, match="backend.context_answers"):
-        backend_config("hf", model=model, context_answers="often")
+        backend_config("hf", context_answers="often")

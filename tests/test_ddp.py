@@ -189,8 +189,8 @@ def test_finetune_ddp_stopped_resumed_and_equal_to_one_process(world):
     # the overrides of tests/test_finetune_train.py; 3 val episodes: the ranks' shares are padded (2 + 2)
     base = [f"dataset={world['data']}", f"model.name={tiny_dir('idefics3')}", f"trainer.run_dir={runs}",
             "trainer.run_name=finetune", "trainer.val_check_interval=2", "data.val_episodes=3",
-            "data.max_train_episodes=16", "data.batch_size=2", "data.render_size=128", "eval.max_new_tokens=140",
-            "eval.report_unconstrained=false", *DDP]
+            "data.max_train_episodes=16", "data.batch_size=2", "data.render_size=128", "decoding.max_new_tokens=140",
+            "decoding.report_unconstrained=false", *DDP]
     cfg_path = CONFIGS / "finetune_tiny_cpu.yaml"
     _cli(world, ["--config", str(cfg_path), *_sets(base + ["trainer.max_steps=2"])])  # stopped at step 2
     run = runs / "finetune"

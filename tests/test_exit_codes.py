@@ -41,7 +41,7 @@ def world(small_dataset_dir, tmp_path):
     def config(*names: str) -> Path:
         path = tmp_path / "cmp.yaml"
         lines = [f"dataset: {small_dataset_dir}", f"out: {tmp_path / 'cmp'}", f"episodes: {tmp_path / 'eps.jsonl'}",
-                 "n_bootstrap: 20", "qualitative: 0", "image_size: 64", "methods:"]
+                 "n_bootstrap: 20", "qualitative: 0", "render_size: 64", "methods:"]
         path.write_text("\n".join(lines + [f"  - {json.dumps(methods[n])}" for n in names]) + "\n")
         return path
 

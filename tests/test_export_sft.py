@@ -23,7 +23,7 @@ RENDER = 96
 def write_config(tmp_path, dataset_dir, **data) -> str:
     cfg = {"kind": "finetune", "dataset": str(dataset_dir), "method": "mogma", "seed": 0,
            "model": {"name": str(tmp_path / "no-model-needed")},
-           "data": {"contexts": [0, 2], "val_context": 2, "val_episodes": 3, "max_train_episodes": 6,
+           "data": {"contexts": [0, 2], "val_contexts": [2], "val_episodes": 3, "max_train_episodes": 6,
                     "render_size": RENDER, "compose": ["objects"], **data},
            "trainer": {"run_dir": str(tmp_path / "ckpt")}}
     path = tmp_path / "ft.yaml"

@@ -55,8 +55,8 @@ def test_a_training_run_writes_cards_that_peft_and_yaml_read(tmp_path):
     run = run_train(CONFIGS / "finetune_tiny_cpu.yaml", [
         f"dataset={data}", f"model.name={base}", f"trainer.run_dir={tmp_path / 'runs'}", "trainer.run_name=t",
         "trainer.max_steps=2", "trainer.val_check_interval=2", "trainer.progress_bar=false", "data.val_episodes=2",
-        "data.max_train_episodes=8", "data.batch_size=2", "data.render_size=128", "eval.max_new_tokens=140",
-        "eval.report_unconstrained=false", "trainer.log_every_n_steps=1"])
+        "data.max_train_episodes=8", "data.batch_size=2", "data.render_size=128", "decoding.max_new_tokens=140",
+        "decoding.report_unconstrained=false", "trainer.log_every_n_steps=1"])
     for folder in ("adapter", "best_adapter"):
         card = (run / folder / "README.md").read_text()
         meta = front_matter(card)

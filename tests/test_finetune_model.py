@@ -69,8 +69,8 @@ def test_unloadable_model_id_fails_fast_naming_the_key(tmp_path):
     with pytest.raises(DegustaError, match=r"model: .*not-a-real-org/no-such-vlm.*local Hugging Face cache"):
         load_vlm("not-a-real-org/no-such-vlm")
     assert time.time() - start < 5  # no hub timeout
-    with pytest.raises(DegustaError, match="backend.model: model folder .*missing.* not found"):
-        load_vlm(str(tmp_path / "missing"), key="backend.model")
+    with pytest.raises(DegustaError, match="model.name: model folder .*missing.* not found"):
+        load_vlm(str(tmp_path / "missing"), key="model.name")
     (tmp_path / "empty").mkdir()
     with pytest.raises(DegustaError, match="without config.json"):
         load_vlm(str(tmp_path / "empty"))
@@ -80,11 +80,11 @@ def test_a_relative_model_path_not_found_says_where_it_was_looked_for(tmp_path, 
     # `runs/tiny_vlm_base` run from another folder: one slash reads as a hub id; say the folder too, and
     # that the shipped base is named by its name alone
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(DegustaError, match=r"backend.model: 'runs/tiny_vlm_base' is not in the local Hugging "
+    with pytest.raises(DegustaError, match=r"model.name: 'runs/tiny_vlm_base' is not in the local Hugging "
                                            r"Face cache .*as a folder it would be .*runs/tiny_vlm_base: a "
                                            r"relative path is read from the current directory \(the shipped model "
                                            r"'tiny_vlm_base' is named by its name alone"):
-        load_vlm("runs/tiny_vlm_base", key="backend.model")
+        load_vlm("runs/tiny_vlm_base", key="model.name")
     with pytest.raises(DegustaError, match=r"model folder ./tiny_vlm_base not found \(the shipped model "):
         load_vlm("./tiny_vlm_base")
 
@@ -100,13 +100,13 @@ def test_device_and_dtype_errors_name_the_configs_own_keys():
     if torch.cuda.is_available():
         pytest.skip("needs a machine without a CUDA device")
     with pytest.raises(DegustaError, match=r"^backend.device: 'cuda' requested but no CUDA device is visible"):
-        load_vlm(str(tiny_dir("idefics3")), device="cuda", key="backend.model")
-    with pytest.raises(DegustaError, match=r"^backend.dtype: expected one of"):
-        load_vlm(str(tiny_dir("idefics3")), dtype="fp8", key="backend.model")
+        load_vlm(str(tiny_dir("idefics3")), device="cuda", key="model.name", device_key="backend.device")
+    with pytest.raises(DegustaError, match=r"^model.dtype: expected one of"):
+        load_vlm(str(tiny_dir("idefics3")), dtype="fp8", key="model.name", device_key="backend.device")
     with pytest.raises(DegustaError, match=r"^device: 'cuda:1' requested"):
         load_vlm(str(tiny_dir("idefics3")), device="cuda:1")
     with pytest.raises(DegustaError, match=r"^backend.device: 'tpu' is not a device"):  # was torch's traceback
-        load_vlm(str(tiny_dir("idefics3")), device="tpu", key="backend.model")
+        load_vlm(str(tiny_dir("idefics3")), device="tpu", key="model.name", device_key="backend.device")
 
 
 def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_path):
@@ -122,14 +122,14 @@ def test_a_corrupt_or_foreign_adapter_is_one_line_naming_the_key_and_folder(tmp_
     lora.save_pretrained(str(good))
     with warnings.catch_warnings():
         warnings.simplefilter("error", FutureWarning)  # peft's deprecated-attribute warning is silenced
-        load_vlm(str(tiny_dir("idefics3")), adapter=str(good), key="backend.model")
+        load_vlm(str(tiny_dir("idefics3")), adapter=str(good), key="model.name")
 
     corrupt = tmp_path / "corrupt"
     corrupt.mkdir()
     (corrupt / "adapter_config.json").write_text("{")
-    with pytest.raises(DegustaError, match=rf"^backend.adapter: {corrupt / 'adapter_config.json'}: not readable as "
+    with pytest.raises(DegustaError, match=rf"^model.adapter: {corrupt / 'adapter_config.json'}: not readable as "
                                            r"JSON \(JSONDecodeError"):
-        load_vlm(str(tiny_dir("idefics3")), adapter=str(corrupt), key="backend.model")
+        load_vlm(str(tiny_dir("idefics3")), adapter=str(corrupt), key="model.name")
 
     foreign = tmp_path / "foreign"  # an adapter of a model whose layers have other names
     foreign.mkdir()
@@ -151,8 +151,8 @@ def test_a_corrupt_json_file_of_a_model_folder_is_named(tmp_path, name, content,
 
     (tmp_path / "config.json").write_text('{"model_type": "idefics3"}')
     (tmp_path / name).write_bytes(content)
-    with pytest.raises(DegustaError, match=re.escape(f"backend.model: {tmp_path / name}: {message.split(': ', 1)[1]}")):
-        resolve_model(str(tmp_path), "backend.model")
+    with pytest.raises(DegustaError, match=re.escape(f"model.name: {tmp_path / name}: {message.split(': ', 1)[1]}")):
+        resolve_model(str(tmp_path), "model.name")
 
 
 @pytest.mark.parametrize("kind", ["idefics3", "qwen2vl"])
@@ -167,9 +167,9 @@ def test_a_config_whose_image_token_is_not_the_processors_is_refused_at_load(tmp
     config = json.loads((folder / "config.json").read_text())
     config["image_token_id"] += 1
     (folder / "config.json").write_text(json.dumps(config))
-    with pytest.raises(DegustaError, match=r"^backend.model: .*config.json's image_token_id is \d+, but the "
+    with pytest.raises(DegustaError, match=r"^model.name: .*config.json's image_token_id is \d+, but the "
                                            r"processor writes its image placeholder .* as token \d+"):
-        load_vlm(str(folder), device="cpu", key="backend.model")
+        load_vlm(str(folder), device="cpu", key="model.name")
 
 
 @pytest.mark.parametrize("template, error", [("{% for m in messages %}{{ m.content }{% endfor %}", "TemplateSyntaxError"),
@@ -183,6 +183,6 @@ def test_a_chat_template_that_cannot_render_is_refused_when_the_backend_loads(tm
 
     folder = shutil.copytree(tiny_dir("idefics3"), tmp_path / "model")
     (folder / "chat_template.jinja").write_text(template)
-    with pytest.raises(DegustaError, match=rf"^backend.model: '{re.escape(str(folder))}': its chat template cannot "
+    with pytest.raises(DegustaError, match=rf"^model.name: '{re.escape(str(folder))}': its chat template cannot "
                                            rf"render a message \({error}"):
         HFBackend(str(folder), device="cpu")

@@ -76,9 +76,10 @@ def no_load(monkeypatch):
 
 def _predict(data: Path, model: Path, out: Path, *keys: str) -> Path:
     return run_predict(None, ["method=mogma", f"dataset={data}", f"out={out / 'predictions.jsonl'}", "context=2",
-                              "backend.name=hf", f"backend.model={model}", "backend.device=cpu",
-                              "backend.dtype=float32", "backend.max_tokens=140", "n=1", "temperature=0.0",
-                              "concurrency=1", "cache='off'", "image_size=128", *keys])
+                              "backend.name=hf", f"model.name={model}", "backend.device=cpu",
+                              "model.dtype=float32", "decoding.max_new_tokens=140", "decoding.n=1",
+                              "decoding.temperature=0.0", "decoding.constrained=false", "concurrency=1", "cache='off'",
+                              "render_size=128", *keys])
 
 
 def test_write_meta_and_read_record_round_trip(small_dataset_dir, tmp_path):
@@ -144,7 +145,7 @@ def test_base_record_round_trip_and_the_unversioned_base_file_still_reads(tmp_pa
     (tmp_path / BASE_FILE).write_text(json.dumps(unversioned))  # what the pretrain export wrote before
     assert read_record(locate_record(tmp_path)) == base
     base.check_prediction("any", {"p000"}, 256)  # a base saw no participant: only the render size counts
-    with pytest.raises(DegustaError, match="image_size: .* 256 px .* set image_size=256"):
+    with pytest.raises(DegustaError, match="render_size: .* 256 px .* set render_size=256"):
         base.check_prediction("any", {"p000"}, 448)
     (tmp_path / BASE_FILE).write_text(json.dumps({**unversioned, "render_size": -256}))
     with pytest.raises(DegustaError, match="render_size: expected a value from 16 to 4,096, got -256"):
@@ -171,8 +172,8 @@ def test_a_dry_run_is_refused_like_the_real_run(adapter, naturalistic_ids, tmp_p
     # `degusta predict --dry-run` must not estimate (and bless) a run that the real run refuses
     with pytest.raises(DegustaError, match=r"^seed: 27 of the 40 participants predicted here"):
         run_predict(None, ["method=mogma", f"dataset={naturalistic_ids}", f"out={tmp_path / 'p.jsonl'}",
-                           "context=2", "backend.name=hf", f"backend.model={adapter}", "seed=1",
-                           "image_size=128"], dry_run=True)
+                           "context=2", "backend.name=hf", f"model.name={adapter}", "seed=1",
+                           "render_size=128"], dry_run=True)
     assert "tokens" not in capsys.readouterr().out and not (tmp_path / "p.jsonl").exists()
 
 
@@ -218,10 +219,10 @@ def test_another_dataset_with_the_same_participant_ids_is_refused(adapter, tmp_p
 
 
 def test_images_are_rendered_at_the_recorded_render_size(adapter, naturalistic_ids, tmp_path, no_load):
-    with pytest.raises(DegustaError, match=r"^image_size: this model was trained on images rendered at 128 px "
+    with pytest.raises(DegustaError, match=r"^render_size: this model was trained on images rendered at 128 px "
                                            r"\(data.render_size in .*degusta_finetune.json\), the predict config "
-                                           r"renders them at 224 px; set image_size=128"):
-        _predict(naturalistic_ids, adapter, tmp_path, "image_size=224")
+                                           r"renders them at 224 px; set render_size=128"):
+        _predict(naturalistic_ids, adapter, tmp_path, "render_size=224")
 
 
 @pytest.mark.slow
@@ -238,6 +239,6 @@ def test_the_guard_with_a_real_tiny_model(tmp_path, one_torch_thread):
         _predict(data, model, tmp_path / "refused", "seed=1")
     episodes = tmp_path / "episodes.jsonl"
     write_episodes(episodes, make_episodes(dataset(), 2, "test", 0)[:1])
-    out = _predict(data, model, tmp_path / "ok", f"episodes={episodes}", "backend.constrained=true")
+    out = _predict(data, model, tmp_path / "ok", f"episodes={episodes}", "decoding.constrained=true")
     assert len(read_predictions(out, dataset().catalog)) == 1
 

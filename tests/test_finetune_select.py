@@ -35,7 +35,7 @@ def _overrides(tmp_path: Path, data: Path, steps: int, *extra: str) -> list[str]
     return [f"dataset={data}", f"model.name={tiny_dir('idefics3')}", f"trainer.run_dir={tmp_path / 'runs'}",
             "trainer.run_name=t", f"trainer.max_steps={steps}", "trainer.val_check_interval=1",
             "trainer.progress_bar=false", "data.val_episodes=1", "data.max_train_episodes=8", "data.contexts=[0]",
-            "data.batch_size=1", "data.render_size=64", "eval.report_unconstrained=false",
+            "data.batch_size=1", "data.render_size=64", "decoding.report_unconstrained=false",
             "trainer.log_every_n_steps=1", *extra]
 
 
@@ -168,7 +168,7 @@ def test_validation_stats_show_a_one_object_answer_for_what_it_is():
     assert stats["val/rmsd"] == 0.0 and stats["val/set_rmsd"] == pytest.approx(0.1789, abs=1e-4)
     assert stats["val/few_matched"] == 1.0 and stats["val/id_accuracy"] == 1.0 and stats["val/cell_iou"] == 1.0
     assert stats["val/count_error"] == 4 and stats["val/parse_rate_unconstrained"] == 0.0
-    assert set(stats) <= fm.monitor_keys(load_config(FinetuneConfig, None, ["eval.report_unconstrained=true"]))
+    assert set(stats) <= fm.monitor_keys(load_config(FinetuneConfig, None, ["decoding.report_unconstrained=true"]))
 
 
 def test_a_weights_folder_is_written_all_or_nothing_and_keeps_the_users_files(tmp_path):

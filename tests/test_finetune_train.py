@@ -22,8 +22,8 @@ def _overrides(tmp_path: Path, data: Path, steps: int) -> list[str]:
     return [f"dataset={data}", f"model.name={tiny_dir('idefics3')}", f"trainer.run_dir={tmp_path / 'runs'}",
             "trainer.run_name=t", f"trainer.max_steps={steps}", f"trainer.val_check_interval={steps}",
             "trainer.progress_bar=false", "data.val_episodes=2", "data.max_train_episodes=16",
-            "data.batch_size=2", "data.render_size=128", "eval.max_new_tokens=140",
-            "eval.report_unconstrained=false", "trainer.log_every_n_steps=1"]
+            "data.batch_size=2", "data.render_size=128", "decoding.max_new_tokens=140",
+            "decoding.report_unconstrained=false", "trainer.log_every_n_steps=1"]
 
 
 def test_shipped_finetune_configs_load():
@@ -64,18 +64,18 @@ def test_train_resume_and_predict_with_the_hf_backend(tmp_path):
     write_episodes(episodes, make_episodes(dataset(), 2, "test", 0)[:2])
     out = run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [
         f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred' / 'predictions.jsonl'}",
-        f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}", "backend.max_tokens=140",
-        "image_size=128"])
+        f"model.name={tiny_dir('idefics3')}", f"model.adapter={adapter}", "decoding.max_new_tokens=140",
+        "render_size=128"])
     preds = read_predictions(out, dataset().catalog)
     assert len(preds) == 2 and not any(p.failed for p in preds) and all(p.placements for p in preds)
     with pytest.raises(DegustaError, match="grid"):  # the adapter knows the grid it was trained on
         run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [
             f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred2' / 'p.jsonl'}",
-            f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}", "image_size=128", "grid.rows=6"])
-    with pytest.raises(DegustaError, match="image_size: this model was trained on images rendered at 128 px"):
+            f"model.name={tiny_dir('idefics3')}", f"model.adapter={adapter}", "render_size=128", "grid.rows=6"])
+    with pytest.raises(DegustaError, match="render_size: this model was trained on images rendered at 128 px"):
         run_predict(CONFIGS / "predict_hf_tiny_finetuned.yaml", [  # refused before the model loads
             f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred3' / 'p.jsonl'}",
-            f"backend.model={tiny_dir('idefics3')}", f"backend.adapter={adapter}"])
+            f"model.name={tiny_dir('idefics3')}", f"model.adapter={adapter}"])
 
 
 def test_bad_finetune_inputs_name_the_key(tmp_path):

@@ -27,9 +27,10 @@ def tiny():
     return model, processor
 
 
-def _module(tiny, **eval_keys) -> fm.FinetuneModule:
-    cfg = load_config(FinetuneConfig, CONFIGS / "finetune_tiny_cpu.yaml",
-                      ["eval.max_new_tokens=120"] + [f"eval.{k}={v}" for k, v in eval_keys.items()])
+def _module(tiny, **keys) -> fm.FinetuneModule:
+    """The tiny config's module with `keys` set: eval.batch_size / eval.log_images, the rest decoding.*."""
+    sets = [f"{'eval' if k in ('batch_size', 'log_images') else 'decoding'}.{k}={v}" for k, v in keys.items()]
+    cfg = load_config(FinetuneConfig, CONFIGS / "finetune_tiny_cpu.yaml", ["decoding.max_new_tokens=120"] + sets)
     return fm.FinetuneModule(*tiny, cfg, dataset(), GRID, "grid")
 
 
@@ -43,6 +44,18 @@ def test_batched_validation_equals_one_by_one(tiny):
         assert [r["text"] for r in batched] == [r["text"] for r in alone]
         assert [r["set_rmsd"] for r in batched] == [r["set_rmsd"] for r in alone]
     assert len({r["text"] for r in alone}) > 1  # not one answer whatever the prompt
+
+
+def test_auto_max_new_tokens_is_the_hf_backends_budget(tiny):
+    """`decoding.max_new_tokens: auto` in validation is what predict's hf backend takes for the same model, dataset
+    and grammar (`answer_token_budget`), so validation generates what predict writes."""
+    from degusta_learn.vlm.generate import answer_token_budget
+
+    module = _module(tiny, max_new_tokens="auto")
+    grammar = AnswerGrammar("grid", dataset().catalog, GRID)
+    assert module.max_new_tokens() == answer_token_budget(tiny[1].tokenizer, dataset(), "grid", GRID,
+                                                          grammar=grammar)["max_new_tokens"]
+    assert _module(tiny).max_new_tokens() == 120
 
 
 def test_generate_batch_keeps_each_answers_noise_stream(tiny):
@@ -82,13 +95,13 @@ def test_validation_batches_by_eval_batch_size(tiny, monkeypatch):
     assert _module(tiny).cfg.eval.batch_size is None  # data.batch_size then
 
 
-@pytest.mark.parametrize("aggregation", ["steps", "votes", "greedy_votes", "greedy_votes_pooled",
-                                         "greedy_votes_context"])
+@pytest.mark.parametrize("aggregation", ["steps", "greedy_votes_pooled"])
 def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_path, aggregation):
-    """eval.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers
-    (`eval.aggregation` as predict's `aggregation`; greedy_votes: one more, greedy generate call)."""
+    """decoding.n > 1: the validation row scores exactly the plan predict's runner aggregates from the same answers
+    (`decoding.aggregation`, the key predict reads; greedy_votes_pooled: one more, greedy generate call)."""
     from degusta_learn.prompting.runner import ZeroShotConfig, ZeroShotRun
     from degusta_learn.scene import save_dataset
+    from degusta_learn.vlm.settings import DecodingSettings
 
     ds = dataset()
     ex = examples(context=2, split="val")[1]
@@ -112,7 +125,7 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
     assert calls == [sampled] + ([{**sampled, "n": 1, "temperature": 0.0}] if aggregation.startswith("greedy") else [])
 
     cfg = ZeroShotConfig(dataset=str(save_dataset(ds, tmp_path / "data")), out=str(tmp_path / "p.jsonl"),
-                         method="mogma", n=4, cache="off", aggregation=aggregation)
+                         method="mogma", cache="off", decoding=DecodingSettings(n=4, aggregation=aggregation))
     ep = next(e for e in examples(context=2, split="val").episodes if e.id == ex.episode)
     answers = texts + ([greedy] if aggregation.startswith("greedy") else [])
     pred = ZeroShotRun(cfg, ds).predict(ep, [Completion(t, 10, 10, {}) for t in answers], {}, cached=0)
@@ -121,37 +134,43 @@ def test_sampled_validation_scores_predicts_aggregate(tiny, monkeypatch, tmp_pat
     assert (row["set_rmsd"], row["acc"], row["n_matched"]) == (expected.set_rmsd, expected.object_accuracy,
                                                                 expected.n_matched)
     assert pred.diagnostics["aggregation"] == aggregation
-    if aggregation == "greedy_votes_context":  # the length of the episode's own context tables, in both
-        counts = [len(ds.arrangement(ep.participant, t).placements) for t in ep.context]
-        assert ex.context == ep.context and len(counts) == 2 and pred.diagnostics["length_from"] == "context"
-        assert pred.diagnostics["length"] == round(sum(counts) / 2)
-        return
-    # the mode length (steps) or the median length (votes): a real aggregate, not the first answer
+    # the mode length (steps) or the samples' median length (greedy_votes_pooled): a real aggregate, not one answer
     assert len(pred.placements) == len(truth) - 1
 
 
-def test_eval_temperature_defaults():
+def test_decoding_temperature_defaults():
     cfg = FinetuneConfig()
-    assert cfg.eval.n == 1 and cfg.eval.sampling_temperature == 0.0
-    cfg.eval.n = 5
-    assert cfg.eval.sampling_temperature == 1.0
-    cfg.eval.temperature = 0.7
-    assert cfg.eval.sampling_temperature == 0.7
+    assert cfg.decoding.n == 1 and cfg.decoding.sampling_temperature == 0.0
+    assert cfg.decoding.constrained is True  # null: validation decodes with the local model, constrained
+    cfg.decoding.n = 5
+    assert cfg.decoding.sampling_temperature == 1.0
+    cfg.decoding.temperature = 0.7
+    assert cfg.decoding.sampling_temperature == 0.7
 
 
 def test_greedy_votes_validation_needs_samples():
     from degusta_learn.errors import DegustaError
-    from degusta_learn.finetune.config import EvalConfig
+    from degusta_learn.vlm.settings import DecodingSettings
 
-    with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes lengthens a greedy answer"):
-        EvalConfig(aggregation="greedy_votes")  # n 1: greedy, nothing to vote
-    assert EvalConfig(aggregation="greedy_votes", n=5).sampling_temperature == 1.0
-    with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes_pooled lengthens a greedy answer"):
-        EvalConfig(aggregation="greedy_votes_pooled", n=5, temperature=0.0)
-    context = EvalConfig(aggregation="greedy_votes_context", n=5)
-    assert FinetuneConfig(eval=context).data.val_context == 4
-    with pytest.raises(DegustaError, match="^eval.aggregation: greedy_votes_context takes its length from the"):
-        FinetuneConfig(eval=context, data=DataConfig(val_context=0))
+    with pytest.raises(DegustaError, match="^decoding.aggregation: greedy_votes_pooled lengthens a greedy answer"):
+        DecodingSettings(aggregation="greedy_votes_pooled")  # n 1: greedy, nothing to vote
+    assert DecodingSettings(aggregation="greedy_votes_pooled", n=5).sampling_temperature == 1.0
+    with pytest.raises(DegustaError, match="^decoding.aggregation: greedy_votes_pooled lengthens a greedy answer"):
+        DecodingSettings(aggregation="greedy_votes_pooled", n=5, temperature=0.0)
+
+
+def test_validation_episodes_of_several_context_lengths():
+    """`data.val_contexts` (one spelling with the learned model's): the validation episodes of every length listed."""
+    from degusta_learn.errors import DegustaError
+    from degusta_learn.finetune.data import build_examples
+
+    assert FinetuneConfig().data.val_contexts == [4]
+    cfg = FinetuneConfig(data=DataConfig(val_contexts=[0, 2], val_episodes=10_000))
+    _, val = build_examples(cfg, dataset(), GRID)
+    assert sorted({len(e.context) for e in val.episodes}) == [0, 2]
+    for bad in ([], [3], [2, 2]):
+        with pytest.raises(DegustaError, match="^data.val_contexts: expected a non-empty list of distinct lengths"):
+            DataConfig(val_contexts=bad)
 
 
 def test_validation_images_png_and_tensorboard(tmp_path):
@@ -167,8 +186,8 @@ def test_validation_images_png_and_tensorboard(tmp_path):
                     [f"dataset={data}", f"model.name={tiny_dir('idefics3')}", f"trainer.run_dir={tmp_path / 'runs'}",
                      "trainer.run_name=t", "trainer.max_steps=1", "trainer.val_check_interval=1",
                      "trainer.progress_bar=false", "data.val_episodes=3", "data.max_train_episodes=2",
-                     "data.contexts=[0]", "data.val_context=0", "data.batch_size=2", "data.render_size=64",
-                     "eval.report_unconstrained=false", "eval.max_new_tokens=120", "eval.log_images=2",
+                     "data.contexts=[0]", "data.val_contexts=[0]", "data.batch_size=2", "data.render_size=64",
+                     "decoding.report_unconstrained=false", "decoding.max_new_tokens=120", "eval.log_images=2",
                      "trainer.loggers=[tensorboard]"])
     assert time.time() - t0 < 60
     pngs = sorted((run / "val_images" / "step_1").glob("*.png"))

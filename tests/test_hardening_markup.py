@@ -272,7 +272,7 @@ def _compare(tmp_path: Path, root: Path, title: str, failures: dict[str, str], m
                MethodEntry("b", predictions=str(tmp_path / "b.jsonl"))]
     methods += [MethodEntry(m, predictions=str(tmp_path / "a.jsonl")) for m in failures]
     cfg = CompareConfig(dataset=str(root), out=str(tmp_path / "cmp"), episodes=str(tmp_path / "eps.jsonl"),
-                        methods=methods, n_bootstrap=10, qualitative=qualitative, image_size=64, title=title)
+                        methods=methods, n_bootstrap=10, qualitative=qualitative, render_size=64, title=title)
     return compare(cfg, log=lambda m: None).out
 
 

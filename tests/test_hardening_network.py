@@ -53,6 +53,7 @@ from loopback import (
 from degusta_learn.cli import main as cli_main
 from degusta_learn.prompting.backends.base import BackendError, backend_config, make_backend
 from degusta_learn.prompting.backends.transport import MAX_REPLY_BYTES, environment_proxies, guarded_client
+from degusta_learn.vlm.settings import ModelSettings
 from degusta_learn.prompting.runner import LINE_BUDGET, cut_answer, fit_line
 from degusta_learn.scene import Prediction, default_catalog, make_episodes, read_predictions, save_dataset
 from degusta_learn.task.answers import MAX_CHARS
@@ -144,7 +145,7 @@ class Server(Loopback):
 
 
 def client(backend: str, srv: Loopback, timeout: float = T):
-    return make_backend(backend_config(backend, model="m", base_url=base_url(backend, srv), timeout=timeout))
+    return make_backend(backend_config(backend, base_url=base_url(backend, srv), timeout=timeout), ModelSettings(name="m"))
 
 
 def complete(backend: str, reply, timeout: float = T) -> dict:
@@ -304,8 +305,8 @@ def test_a_replayed_answer_is_cut_the_same_way_and_an_empty_one_stays_a_counted_
     rec = tmp_path / "answers.jsonl"
     rec.write_text("".join(json.dumps({"episode": e.id, "sample": 0, "text": GOOD + " " * (3 << 20) if i % 2 else ""})
                            + "\n" for i, e in enumerate(eps)))
-    code, out, err = predict(config(tmp_path, None, dataset_dir, backend={"name": "replay", "path": str(rec),
-                                                                          "model": "replay"}), capsys)
+    code, out, err = predict(config(tmp_path, None, dataset_dir, backend={"name": "replay", "path": str(rec)},
+                                    model={"name": "replay"}), capsys)
     assert code == 0, err
     preds = read_predictions(tmp_path / "run" / "predictions.jsonl", CAT)
     assert all(p.failed for p in preds)  # a local / recorded empty answer is the model's: no retry
@@ -340,7 +341,7 @@ def test_an_empty_completion_is_a_server_fault_retried_with_the_backoff(tmp_path
     srv.script.append(json_reply(200, EMPTY[backend][shape]))
     try:
         got = bounded(lambda: predict(config(tmp_path, base_url(backend, srv), dataset_dir, backoff=0.5,
-                                             backend={"name": backend, "model": "m"}), capsys))
+                                             backend={"name": backend}), capsys))
     finally:
         srv.close()
     code, out, err = got["value"]
@@ -374,7 +375,7 @@ def test_empty_choices_among_good_ones_are_asked_again(tmp_path, dataset_dir, ca
         return json_reply(200, chat_completion("m", [GOOD] * (n - 1) + [""] if n > 1 else [GOOD]))
     srv = Loopback(reply)
     try:
-        code, out, err = predict(config(tmp_path, srv.url, dataset_dir, n=3), capsys)
+        code, out, err = predict(config(tmp_path, srv.url, dataset_dir, decoding={"n": 3}), capsys)
     finally:
         srv.close()
     assert code == 0, err
@@ -467,7 +468,7 @@ def test_compare_keeps_one_ledger_per_paid_method_and_reports_each_cost(tmp_path
             methods.append({"name": name, "config": str(cfg)})
         cmp = tmp_path / "cmp.yaml"
         cmp.write_text(yaml.safe_dump({"dataset": str(dataset_dir), "out": str(tmp_path / "report"), "contexts": [2],
-                                       "split": "all", "n_bootstrap": 50, "qualitative": 0, "image_size": 64,
+                                       "split": "all", "n_bootstrap": 50, "qualitative": 0, "render_size": 64,
                                        "methods": methods}))
         got = bounded(lambda: (cli_main(["compare", "--config", str(cmp)]), capsys.readouterr()), limit=60)
         code, _ = got["value"]
@@ -516,12 +517,13 @@ def test_environment_proxies_are_honoured_and_no_proxy_bypasses_them(monkeypatch
 
 def config(tmp_path: Path, url, dataset_dir, **extra) -> Path:
     cfg = {"method": "mogma", "dataset": str(dataset_dir), "out": str(tmp_path / "run" / "predictions.jsonl"),
-           "context": 2, "split": "all", "n": 1, "image_size": 64, "concurrency": 1, "backoff": 0,
-           "max_retries": 1, "backend": {"name": "openai", "model": "m", "base_url": url, "timeout": T}}
+           "context": 2, "split": "all", "render_size": 64, "concurrency": 1, "backoff": 0,
+           "max_retries": 1, "backend": {"name": "openai", "base_url": url, "timeout": T}, "model": {"name": "m"},
+           "decoding": {"n": 1, "temperature": 1.0}}
     for k, v in extra.items():
         cfg[k] = {**cfg[k], **v} if isinstance(v, dict) and isinstance(cfg.get(k), dict) else v
     if cfg["backend"]["name"] == "replay":
-        cfg["backend"] = {k: v for k, v in cfg["backend"].items() if k in ("name", "path", "model")}
+        cfg["backend"] = {k: v for k, v in cfg["backend"].items() if k in ("name", "path")}
     elif cfg["backend"].get("base_url") is None and url is not None:
         cfg["backend"]["base_url"] = url
     tmp_path.mkdir(parents=True, exist_ok=True)

@@ -255,7 +255,7 @@ def test_bootstrap_at_the_cap_stays_small():
 
 @pytest.mark.parametrize("key, value", [
     ("n_bootstrap", "100000000000"), ("n_bootstrap", "0"), ("n_bootstrap", "1e11"), ("qualitative", "-1"),
-    ("qualitative", "100000"), ("image_size", "100000"), ("image_size", "8"), ("seed", "-1"),
+    ("qualitative", "100000"), ("render_size", "100000"), ("render_size", "8"), ("seed", "-1"),
 ])
 def test_compare_numbers_are_bounded(compare_cfg, capsys, key, value):
     err = run_cli(["compare", "--config", compare_cfg, "--set", f"{key}={value}"], capsys)
@@ -267,7 +267,7 @@ def test_qualitative_is_checked_again_where_it_is_used(tmp_path):
 
     from degusta_learn.evaluate.compare_report import _qualitative
 
-    cfg = SimpleNamespace(qualitative=-1, seed=0, image_size=64)
+    cfg = SimpleNamespace(qualitative=-1, seed=0, render_size=64)
     row = SimpleNamespace(method="m", episode="e", failed=True, set_rmsd=float("nan"))
     with pytest.raises(DegustaError, match="^qualitative: "):
         _qualitative(cfg, None, [row], {"m": []}, {"m": {}}, tmp_path)

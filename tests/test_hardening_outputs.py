@@ -278,7 +278,7 @@ def test_generate_interrupted_and_killed(tmp_path, capsys, monkeypatch):
 def _compare_cfg(tmp_path, dataset, methods, out="cmp", extra=""):
     cfg = tmp_path / "cmp.yaml"
     lines = [f"dataset: {dataset}", f"out: {tmp_path / out}", f"episodes: {tmp_path / 'eps.jsonl'}",
-             "n_bootstrap: 20", "qualitative: 0", "image_size: 64", "methods:"]
+             "n_bootstrap: 20", "qualitative: 0", "render_size: 64", "methods:"]
     lines += [f"  - {json.dumps(m)}" for m in methods]
     cfg.write_text("\n".join(lines) + "\n" + extra)
     return cfg
@@ -347,7 +347,7 @@ def test_compare_never_recomputes_a_paid_method_silently(world, small_dataset_di
     ds, eps, _ = world
     paid = tmp_path / "gpt.yaml"
     paid.write_text(f"method: mogma\ndataset: {small_dataset_dir}\nout: {tmp_path / 'g.jsonl'}\n"
-                    "backend: {name: openai, model: gpt-4o}\n")
+                    "backend: {name: openai}\nmodel: {name: gpt-4o}\n")
     pred = tmp_path / "cmp" / "predictions" / "gpt_episodes.jsonl"
     pred.parent.mkdir(parents=True)
     write_predictions(pred, perfect(ds, eps, "mogma"))  # from an older version: no fingerprint

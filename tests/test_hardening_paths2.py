@@ -232,7 +232,7 @@ def test_tilde_is_expanded_in_path_flags_and_path_keys(world, tmp_path, monkeypa
     assert (home / "ev" / "metrics.json").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith("~")]  # never a literal '~' folder
     assert check_path("~")[0] == str(home)
-    assert all(path_key(k) for k in ("dataset", "trainer.run_dir", "methods[0].config", "backend.model"))
+    assert all(path_key(k) for k in ("dataset", "trainer.run_dir", "methods[0].config", "model.name", "model.adapter"))
     assert not any(path_key(k) for k in ("method", "backend.name", "title", "trainer.run_name"))
 
 
@@ -434,7 +434,7 @@ def test_every_string_key_of_every_config_kind_is_a_path_key_or_known_text():
     unclassified = sorted(k for k in seen if not path_key(k) and k.rsplit(".", 1)[-1] not in NOT_PATHS)
     assert not unclassified, f"classify these string keys (config.PATH_KEYS or NOT_PATHS): {unclassified}"
     assert {k for k in seen if path_key(k)} >= {"dataset", "out", "episodes", "trainer.run_dir", "model.name",
-                                                "backend.model", "methods[0].config", "methods[0].predictions"}
+                                                "model.adapter", "methods[0].config", "methods[0].predictions"}
     assert set(PATH_KEYS) >= {"checkpoint", "cache", "adapter"}
 
 

@@ -46,18 +46,19 @@ def test_a_replay_file_whose_diagnostics_is_not_an_object(data, tmp_path, capsys
     answers = tmp_path / "answers.jsonl"
     answers.write_text(json.dumps({"episode": "p000/t0/k2", "diagnostics": diagnostics}) + "\n")
     code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", "split=all", "context=2",
-                        "method=mogma", "image_size=64", f"backend={{name: replay, path: {answers}}}",
+                        "method=mogma", "render_size=64", f"backend={{name: replay, path: {answers}}}",
+                        "model.name=replay",
                         config="zeroshot_mogma_gpt4o")
     assert code == 2 and f"{answers}:1: diagnostics: expected an object" in one_line(err)
     assert not (tmp_path / "p.jsonl").exists()
 
 
 @pytest.mark.parametrize("size", ["32768", "-64", "0"])
-def test_backend_image_size_is_bounded(data, tmp_path, capsys, size):
+def test_model_image_size_is_bounded(data, tmp_path, capsys, size):
     """32768 tried to allocate gigabytes; -64 gave '-2 x -2 image tokens'; 0 was silently the default."""
-    code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", f"backend.image_size={size}",
+    code, err = predict(capsys, f"dataset={data}", f"out={tmp_path / 'p.jsonl'}", f"model.image_size={size}",
                         config="predict_hf_base_zeroshot")
-    assert code == 2 and "backend.image_size: expected a value from 16 to 4,096" in one_line(err)
+    assert code == 2 and "model.image_size: expected a value from 16 to 4,096" in one_line(err)
 
 
 @pytest.mark.parametrize("backend", ["hf", "anthropic", "gemini"])
@@ -65,11 +66,11 @@ def test_a_backend_without_a_model_says_the_model_is_required(data, tmp_path, ca
     """An hf section without `model` used to look for a local model called 'gpt-4o' (the openai default)."""
     cfg = tmp_path / "c.yaml"
     cfg.write_text(f"method: mogma\ndataset: {data}\nout: {tmp_path / 'p.jsonl'}\nsplit: all\ncontext: 2\n"
-                   f"image_size: 64\nbackend: {{name: {backend}}}\n")
+                   f"render_size: 64\nbackend: {{name: {backend}}}\n")
     code, err = predict(capsys, config=str(cfg))
-    assert code == 2 and f"backend.model: required for the {backend} backend" in one_line(err)
+    assert code == 2 and f"model.name: required for the {backend} backend" in one_line(err)
     code, err = predict(capsys, "dry_run=true", config=str(cfg))
-    assert code == 2 and "backend.model: required" in one_line(err)
+    assert code == 2 and "model.name: required" in one_line(err)
 
 
 def test_an_unknown_split_names_the_config_and_key(data, tmp_path, capsys):

@@ -138,8 +138,9 @@ def dataset_dir(tmp_path_factory):
 
 def config(tmp_path, url, dataset_dir, **extra):
     cfg = {"method": "mogma", "dataset": str(dataset_dir), "out": str(tmp_path / "run" / "predictions.jsonl"),
-           "context": 2, "split": "all", "n": 3, "image_size": 64, "concurrency": 1, "backoff": 0,
-           "max_retries": 2, "backend": {"name": "openai", "model": "fake-model", "base_url": url, "timeout": 5}}
+           "context": 2, "split": "all", "render_size": 64, "concurrency": 1, "backoff": 0,
+           "max_retries": 2, "backend": {"name": "openai", "base_url": url, "timeout": 5},
+           "model": {"name": "fake-model"}, "decoding": {"n": 3, "temperature": 1.0}}
     for k, v in extra.items():
         cfg[k] = {**cfg[k], **v} if isinstance(v, dict) and isinstance(cfg.get(k), dict) else v
     path = tmp_path / "zeroshot.yaml"
@@ -203,7 +204,7 @@ def test_hostile_answers_through_a_run_and_its_cached_resume(tmp_path, dataset_d
 
 def test_answers_cached_before_this_version_resume_as_counted_failures(tmp_path, dataset_dir, capsys, server):
     """A cache filled with answers that once crashed `parse_answer`: resuming counts them, asks nothing."""
-    path = config(tmp_path, server.url, dataset_dir, n=1)
+    path = config(tmp_path, server.url, dataset_dir, decoding={"n": 1})
     server.answer = lambda req, i: HOSTILE["5,000-digit id"]
     assert predict(path, capsys)[0] == 0 and len(server.requests) == 9
     db = sqlite3.connect(tmp_path / "run" / "responses_cache.sqlite")
@@ -333,7 +334,7 @@ def test_an_echoed_key_is_never_written(tmp_path, dataset_dir, capsys, monkeypat
         sent = {k.lower(): v for k, v in srv.requests[0]["headers"].items()}
         assert sent["authorization"] == f"Bearer {KEY}"
         srv.fail(500, lambda req: json.dumps({"error": {"message": echo(req)}}).encode(), times=10_000)  # then a failed run: the message echoes too
-        code, out2, err2 = predict(path, capsys, "n=4")
+        code, out2, err2 = predict(path, capsys, "decoding.n=4")
         assert code == 2 and "***" in err2
         written = [p for p in tmp_path.rglob("*") if p.is_file()]
         assert {"responses_cache.sqlite", "ledger.json", "predictions.jsonl"} <= {p.name for p in written}
@@ -424,9 +425,9 @@ class PerSample(AnthropicBackend):
     cache_path = None
 
     @classmethod
-    def from_config(cls, cfg, grid=None, catalog=None):
+    def from_config(cls, cfg, model, decoding=None, grid=None, catalog=None):
         obj = cls.__new__(cls)
-        obj.model = cfg.model
+        obj.model = model.name
         return obj
 
     def complete(self, prompt, n, temperature, max_tokens, seed=None):
@@ -441,7 +442,7 @@ def test_per_sample_backends_cache_each_answer_at_once(tmp_path, dataset_dir, mo
     monkeypatch.setitem(BACKENDS, "anthropic", "test_hardening_prompting:PerSample")
     PerSample.calls = []
     PerSample.cache_path = tmp_path / "run" / "responses_cache.sqlite"
-    path = config(tmp_path, None, dataset_dir, backend={"name": "anthropic", "model": "fake", "base_url": None})
+    path = config(tmp_path, None, dataset_dir, backend={"name": "anthropic", "base_url": None}, model={"name": "fake"})
     code, out, err = predict(path, capsys)
     assert code == 0, err
     assert PerSample.calls == [(1, i) for i in range(27)]  # one sample a request, each cached before the next

@@ -76,7 +76,7 @@ def _refused_fast(fn, *words: str, reader_buffer: int = 0) -> str:
 def _check(folder: Path):
     from degusta_learn.vlm.hub import resolve_model
 
-    return lambda: resolve_model(str(folder), key="backend.model")
+    return lambda: resolve_model(str(folder), key="model.name")
 
 
 # -- config.json -----------------------------------------------------------------------------------------------
@@ -96,7 +96,7 @@ CONFIG_CASES = [
 @pytest.mark.parametrize("dotted,value", CONFIG_CASES, ids=[f"{k}={str(v)[:12]}" for k, v in CONFIG_CASES])
 def test_config_sizes_refused(base_copy, dotted, value):
     _edit(base_copy, "config.json", dotted, value)
-    _refused_fast(_check(base_copy), "config.json", dotted.rsplit(".", 1)[-1], "backend.model")
+    _refused_fast(_check(base_copy), "config.json", dotted.rsplit(".", 1)[-1], "model.name")
 
 
 def test_config_patches_and_experts_refused(base_copy):
@@ -284,8 +284,8 @@ def test_adapter_config_refused(adapter, field, value):
     from degusta_learn.vlm.hub import check_json_files
 
     _edit(adapter, "adapter_config.json", field, value)
-    _refused_fast(lambda: check_json_files(adapter, "backend.adapter"), "adapter_config.json", field.split(".")[0],
-                  "backend.adapter")
+    _refused_fast(lambda: check_json_files(adapter, "model.adapter"), "adapter_config.json", field.split(".")[0],
+                  "model.adapter")
 
 
 def test_adapter_rank_beyond_its_weights_refused(adapter):
@@ -293,10 +293,10 @@ def test_adapter_rank_beyond_its_weights_refused(adapter):
     from degusta_learn.vlm.bounds import check_adapter
 
     _edit(adapter, "adapter_config.json", "r", 4096)
-    _refused_fast(lambda: check_adapter(adapter, MODULES, "backend.adapter"), "adapter_config.json", "r", "rank 4")
+    _refused_fast(lambda: check_adapter(adapter, MODULES, "model.adapter"), "adapter_config.json", "r", "rank 4")
     _edit(adapter, "adapter_config.json", "r", 4)
     _edit(adapter, "adapter_config.json", "rank_pattern", {"q_proj": 512})
-    _refused_fast(lambda: check_adapter(adapter, MODULES, "backend.adapter"), "rank_pattern", "512")
+    _refused_fast(lambda: check_adapter(adapter, MODULES, "model.adapter"), "rank_pattern", "512")
 
 
 def test_adapter_backtracking_regex_refused_in_time(adapter):
@@ -306,7 +306,7 @@ def test_adapter_backtracking_regex_refused_in_time(adapter):
     _edit(adapter, "adapter_config.json", "target_modules", "(a|aa)+$")
     t = time.process_time()  # the regex module's timeout counts CPU time (the wall time depends on the load)
     with pytest.raises(DegustaError, match="target_modules.*takes more than") as e:
-        check_adapter(adapter, names, "backend.adapter")
+        check_adapter(adapter, names, "model.adapter")
     assert time.process_time() - t < REGEX_SECONDS + 1 and "\n" not in str(e.value)
 
 
@@ -318,7 +318,7 @@ def test_adapter_regexes_resolved_to_names(adapter):
 
     _edit(adapter, "adapter_config.json", "target_modules", r".*\.q_proj")
     _edit(adapter, "adapter_config.json", "rank_pattern", {r"layers\.0\..*": 4, "q_proj": 2})
-    config = check_adapter(adapter, MODULES, "backend.adapter")
+    config = check_adapter(adapter, MODULES, "model.adapter")
     assert sorted(config.target_modules) == sorted(m for m in MODULES if m.endswith("q_proj"))
     assert config.rank_pattern[re.escape(MODULES[0])] == 4 and config.rank_pattern[re.escape(MODULES[2])] == 2
 
@@ -437,7 +437,7 @@ def test_hostile_template_file_refused_at_load(base_copy, file):
 
     t = time.perf_counter()
     with pytest.raises(DegustaError) as e:
-        resolve_model(str(base_copy), key="backend.model")
+        resolve_model(str(base_copy), key="model.name")
     msg = str(e.value)
     assert time.perf_counter() - t < TEMPLATE_S and "\n" not in msg and file in msg and "chat template refused" in msg
 
@@ -447,7 +447,7 @@ def test_template_that_merely_fails_is_left_to_chat_format(base_copy):
     from degusta_learn.vlm.hub import resolve_model
 
     (base_copy / "chat_template.jinja").write_text("{{ raise_exception('roles must alternate') }}")
-    resolve_model(str(base_copy), key="backend.model")
+    resolve_model(str(base_copy), key="model.name")
 
 
 KITCHEN_SINK = (

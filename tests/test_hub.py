@@ -88,8 +88,8 @@ def test_a_hub_id_downloads_into_the_standard_cache_then_loads_offline(tmp_path,
 def test_predict_with_a_hub_id_downloads_then_answers(tmp_path, repo, small_dataset_dir):
     out = tmp_path / "pred" / "predictions.jsonl"
     args = ["predict", "--config", str(CONFIGS / "predict_hf_tiny_zeroshot.yaml"), "--set", f"dataset={small_dataset_dir}",
-            "--set", "backend.model=acme/tiny-vlm", "--set", "context=2", "--set", f"out={out}",
-            "--set", "image_size=64", "--set", "backend.max_tokens=140"]
+            "--set", "model.name=acme/tiny-vlm", "--set", "context=2", "--set", f"out={out}",
+            "--set", "render_size=64", "--set", "decoding.max_new_tokens=140"]
     with FakeHub({"acme/tiny-vlm": repo}) as hub:
         done = run(args, hub_env(tmp_path, hub, offline=False), tmp_path, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -99,10 +99,10 @@ def test_predict_with_a_hub_id_downloads_then_answers(tmp_path, repo, small_data
 def test_a_typo_in_a_hub_id_is_one_line_naming_the_key(tmp_path, repo, small_dataset_dir):
     with FakeHub({"acme/tiny-vlm": repo}) as hub:
         done = run(["predict", "--config", str(CONFIGS / "predict_hf_tiny_zeroshot.yaml"), "--set",
-                    f"dataset={small_dataset_dir}", "--set", "backend.model=acme/tiny-vml", "--set", "context=2",
+                    f"dataset={small_dataset_dir}", "--set", "model.name=acme/tiny-vml", "--set", "context=2",
                     "--set", f"out={tmp_path / 'p.jsonl'}"], hub_env(tmp_path, hub, offline=False), tmp_path)
     line = one_line_error(done)
-    assert done.returncode == 2 and line.startswith("degusta: error: backend.model: 'acme/tiny-vml': no such model "
+    assert done.returncode == 2 and line.startswith("degusta: error: model.name: 'acme/tiny-vml': no such model "
                                                     "on the Hugging Face Hub"), line
     assert not (tmp_path / "p.jsonl").exists()
 
@@ -116,8 +116,8 @@ def test_offline_hub_ids_are_refused_at_once(tmp_path, monkeypatch, name, messag
     monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))  # read per call for the cache folder? the id is refused anyway
     start = time.monotonic()
     with pytest.raises(DegustaError) as e:
-        resolve_model(name, key="backend.model")
-    assert message in str(e.value) and str(e.value).startswith("backend.model: ") and "\n" not in str(e.value)
+        resolve_model(name, key="model.name")
+    assert message in str(e.value) and str(e.value).startswith("model.name: ") and "\n" not in str(e.value)
     assert time.monotonic() - start < 10  # no network timeout
 
 

@@ -42,11 +42,11 @@ def processor_and_config(name: str, reference: bool = False):
 
 
 def budget_of(name: str, kind: str, cfg) -> int:
-    """The image budget the hf backend applies: backend.image_size, else (fine-tuned) the trained one."""
+    """The image budget the hf backend applies: model.image_size, else (fine-tuned) the trained one."""
     if kind == "zeroshot":
-        assert cfg.backend.image_size is not None
-        return cfg.backend.image_size
-    assert cfg.backend.image_size is None  # taken from the adapter's degusta_finetune.json
+        assert cfg.model.image_size is not None
+        return cfg.model.image_size
+    assert cfg.model.image_size is None  # taken from the adapter's degusta_finetune.json
     return read_yaml(CONFIGS / f"finetune_{name}.yaml")["model"]["image_size"]
 
 
@@ -55,11 +55,11 @@ def budget_of(name: str, kind: str, cfg) -> int:
 def test_real_model_predict_config_resolves_the_grid(name, kind):
     path = CONFIGS / f"predict_hf_{name}_{kind}.yaml"
     _, cfg = build_config(path, [], "method", get_method)
-    assert cfg.backend.name == "hf" and cfg.backend.model == REPLICAS[name]["hub_id"]
+    assert cfg.backend.name == "hf" and cfg.model.name == REPLICAS[name]["hub_id"]
     grid = Grid(cfg.grid.rows, cfg.grid.cols)
     processor, config = processor_and_config(name)
-    set_image_budget(processor, config, budget_of(name, kind, cfg), key="backend.image_size")
-    check_grid_resolution(processor, config, grid, key="backend.image_size")
+    set_image_budget(processor, config, budget_of(name, kind, cfg), key="model.image_size")
+    check_grid_resolution(processor, config, grid, key="model.image_size")
     per_image = tokens_per_image(processor, ChatFormat(processor), config.image_token_id)
     assert per_image == TOKENS[name] >= grid.rows * grid.cols
 
@@ -69,9 +69,9 @@ def test_finetuned_config_matches_its_training_run(name):
     _, cfg = build_config(CONFIGS / f"predict_hf_{name}_finetuned.yaml", [], "method", get_method)
     train = read_yaml(CONFIGS / f"finetune_{name}.yaml")
     run = Path(train["trainer"].get("run_dir", "runs")) / train["trainer"]["run_name"]
-    assert Path(cfg.backend.adapter) == run / "best_adapter"
-    assert cfg.backend.model == train["model"]["name"] and cfg.method == train["method"]
-    assert cfg.seed == train["seed"] and cfg.image_size == train["data"]["render_size"]
+    assert Path(cfg.model.adapter) == run / "best_adapter"
+    assert cfg.model.name == train["model"]["name"] and cfg.method == train["method"]
+    assert cfg.seed == train["seed"] and cfg.render_size == train["data"]["render_size"]
     assert (cfg.grid.rows, cfg.grid.cols) == (train["data"]["grid"]["rows"], train["data"]["grid"]["cols"])
 
 
@@ -79,8 +79,8 @@ def test_finetuned_config_matches_its_training_run(name):
 def test_smolvlm_256m_zeroshot_config_with_the_real_processor_files():
     _, cfg = build_config(CONFIGS / "predict_hf_smolvlm_256m_zeroshot.yaml", [], "method", get_method)
     processor, config = processor_and_config("smolvlm_256m", reference=True)
-    set_image_budget(processor, config, cfg.backend.image_size, key="backend.image_size")
-    check_grid_resolution(processor, config, Grid(8, 8), key="backend.image_size")
+    set_image_budget(processor, config, cfg.model.image_size, key="model.image_size")
+    check_grid_resolution(processor, config, Grid(8, 8), key="model.image_size")
     assert tokens_per_image(processor, ChatFormat(processor), config.image_token_id) == 64
 
 
@@ -89,12 +89,12 @@ def test_smolvlm_256m_zeroshot_config_with_the_real_processor_files():
     ("smolvlm_256m", 448, "7 x 7"),     # the render size as a budget: one token per 64 px is 7 per side
     ("qwen2vl_2b", 196, "7 x 7"),       # 14 px patches merged 2 x 2: 28 px a token
 ])
-def test_a_budget_too_coarse_for_the_grid_is_one_line_naming_backend_image_size(name, size, shown):
+def test_a_budget_too_coarse_for_the_grid_is_one_line_naming_model_image_size(name, size, shown):
     processor, config = processor_and_config(name)
-    set_image_budget(processor, config, size, key="backend.image_size")
-    with pytest.raises(DegustaError, match=rf"^backend.image_size: images give the model {shown} image tokens, "
+    set_image_budget(processor, config, size, key="model.image_size")
+    with pytest.raises(DegustaError, match=rf"^model.image_size: images give the model {shown} image tokens, "
                                            r"fewer than the 8x8 grid's 8 cells per side") as e:
-        check_grid_resolution(processor, config, Grid(8, 8), key="backend.image_size")
+        check_grid_resolution(processor, config, Grid(8, 8), key="model.image_size")
     assert "\n" not in str(e.value)
     unit = 64 if name.startswith("smolvlm") else 28
     assert f"use at least {8 * unit} px per image" in str(e.value)
@@ -105,7 +105,7 @@ def test_the_tiny_zeroshot_config_no_longer_invites_a_real_model():
     header = "".join(line for line in text.splitlines(keepends=True) if line.startswith("#"))
     assert "e.g. HuggingFaceTB/SmolVLM-256M-Instruct" not in header
     assert "predict_hf_{smolvlm_256m,smolvlm_500m,qwen2vl_2b}_zeroshot.yaml" in header
-    assert read_yaml(CONFIGS / "predict_hf_tiny_zeroshot.yaml")["backend"]["image_size"] == 64
+    assert read_yaml(CONFIGS / "predict_hf_tiny_zeroshot.yaml")["model"]["image_size"] == 64
 
 
 def test_an_unknown_token_geometry_is_checked_by_counting_image_tokens():
@@ -114,10 +114,10 @@ def test_an_unknown_token_geometry_is_checked_by_counting_image_tokens():
     other = SimpleNamespace(model_type="another_vlm", image_token_id=config.image_token_id,
                             vision_config=config.vision_config)
     set_image_budget(processor, config, 256)  # 4 x 4 = 16 image tokens
-    with pytest.raises(DegustaError, match=r"^backend.image_size: an image gives the model 16 image tokens, fewer "
+    with pytest.raises(DegustaError, match=r"^model.image_size: an image gives the model 16 image tokens, fewer "
                                            r"than the 8x8 grid's 64 cells") as e:
-        check_grid_resolution(processor, other, Grid(8, 8), key="backend.image_size")
+        check_grid_resolution(processor, other, Grid(8, 8), key="model.image_size")
     assert "\n" not in str(e.value)
-    check_grid_resolution(processor, other, Grid(4, 4), key="backend.image_size")  # 16 cells: resolved
+    check_grid_resolution(processor, other, Grid(4, 4), key="model.image_size")  # 16 cells: resolved
     set_image_budget(processor, config, 512)
-    check_grid_resolution(processor, other, Grid(8, 8), key="backend.image_size")  # 64 tokens
+    check_grid_resolution(processor, other, Grid(8, 8), key="model.image_size")  # 64 tokens

@@ -76,32 +76,6 @@ def test_each_answer_cell_and_direction_points_at_the_image_tokens_of_the_object
         assert cells == sorted(truth[0]["cells"])
 
 
-def test_list_items_also_point_the_type_and_id_of_each_item_at_its_object(tiny):
-    model, processor = tiny
-    tok = processor.tokenizer
-    mix = TaskMix(lists=1, describe=0, gomo=0, locate=0, scenes=[0, 1, 0, 0], objects_sheet=1.0)
-    examples, batch, plain = _batch(model, processor, mix)
-    catalog = default_catalog()
-    items = RetrievalTargets(catalog, tok, model.config.image_token_id, 64, GRID, list_items=True)
-    sup = items(examples, batch["input_ids"], batch["labels"])
-    labels = batch["labels"]
-    named = {tok.convert_tokens_to_ids(w) for w in list(catalog.types) + [str(i) for i in catalog.ids]}
-    extra = sum(int(labels[b, t + 1]) in named for b in range(labels.shape[0]) for t in range(labels.shape[1] - 1))
-    assert len(sup["retrieval_rows"]) == len(plain["retrieval_rows"]) + extra and extra > 0
-    for n, (b, t) in enumerate(zip(sup["retrieval_rows"].tolist(), sup["retrieval_queries"].tolist())):
-        if int(labels[b, t + 1]) not in named:
-            continue
-        # a type or id query points at the object whose id comes next in the answer
-        upcoming = next(int(tok.decode([int(labels[b, s])])) for s in range(t + 1, labels.shape[1])
-                        if labels[b, s] != -100 and tok.decode([int(labels[b, s])]).strip().isdigit())
-        _, cells = _cells_of_targets(batch, sup, n, model.config.image_token_id)
-        assert cells == sorted(next(i for i in examples[b].meta["truth"] if i["id"] == upcoming)["cells"])
-    # describe answers copy type and id from the question: no extra queries there
-    d_examples, d_batch, d_plain = _batch(model, processor, TaskMix(lists=0, describe=1, gomo=0, locate=0))
-    d_sup = items(d_examples, d_batch["input_ids"], d_batch["labels"])
-    assert torch.equal(d_sup["retrieval_queries"], d_plain["retrieval_queries"])
-
-
 def test_mark_sheet_questions_have_nothing_to_retrieve(tiny):
     model, processor = tiny
     _, _, sup = _batch(model, processor, TaskMix(lists=0, describe=0, gomo=1, locate=0))

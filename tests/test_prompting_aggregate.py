@@ -89,7 +89,7 @@ def test_rotation_is_normalized_and_finite():
     assert placements[0].rotation == pytest.approx(310.0) and math.isfinite(placements[0].rotation)
 
 
-# ----------------------------------------------------------------------------- object votes
+# ------------------------------------------ object votes (greedy_votes_pooled's fallback without a greedy answer)
 
 
 def test_votes_take_the_most_named_objects_in_their_mean_order():
@@ -102,8 +102,8 @@ def test_votes_take_the_most_named_objects_in_their_mean_order():
         [Gi("plate", 2, ["B2"], "N"), Gi("fork", 3, ["C4"], "E"), Gi("cup", 1, ["A2"], "N"),
          Gi("knife", 4, ["D1"], "W")],
     ]
-    placements, diag = combine(responses, "grid", G, how="votes")
-    assert diag["aggregation"] == "votes" and diag["n_parsed"] == 3 and diag["length"] == 3  # median of 3, 3, 4
+    placements, diag = aggregate_votes(responses, "grid", G)
+    assert diag["n_parsed"] == 3 and diag["length"] == 3  # median of 3, 3, 4
     assert diag["length_agreement"] == pytest.approx(2 / 3, abs=1e-4)
     # votes 3, 3, 3, 1 (knife out); mean steps: plate (1+0+0)/3, cup (0+1+2)/3, fork (2+2+1)/3
     assert [p.object for p in placements] == [2, 1, 3]
@@ -144,23 +144,32 @@ def test_one_answer_is_its_own_vote():
     assert [(p.object, p.x, p.y) for p in placements] == [(it.id, *it.position) for it in answer]
 
 
+def test_the_removed_aggregations_are_refused():
+    """votes, greedy_votes and greedy_votes_context were removed (no shipped config used them); object votes remain
+    greedy_votes_pooled's fallback when its greedy answer does not parse."""
+    for removed in ("votes", "greedy_votes", "greedy_votes_context"):
+        with pytest.raises(DegustaError, match=r"aggregation: expected one of \['steps', 'greedy_votes_pooled'\]"):
+            combine([[U("cup", 1, 0.5, 0.5, 0)]], "unmarked", how=removed)
+
+
 def test_unknown_aggregation_is_refused_in_python_configs_too():
     """The loader checks YAML and --set; a config built in Python is checked when made, not after the answers."""
-    from degusta_learn.finetune.config import EvalConfig
     from degusta_learn.prompting.runner import ZeroShotConfig
+    from degusta_learn.vlm.settings import DecodingSettings
 
     with pytest.raises(DegustaError, match="aggregation: expected one of"):
         combine([], "grid", G, how="vote")
-    with pytest.raises(DegustaError, match="aggregation: expected one of"):
-        ZeroShotConfig(method="mogma", dataset="d", out="o", aggregation="vote")
-    with pytest.raises(DegustaError, match="eval.aggregation: expected one of"):
-        EvalConfig(aggregation="vote")
+    with pytest.raises(DegustaError, match="^decoding.aggregation: expected one of"):
+        ZeroShotConfig(method="mogma", dataset="d", out="o", decoding=DecodingSettings(aggregation="vote"))
+    with pytest.raises(DegustaError, match="^decoding.aggregation: expected one of"):
+        DecodingSettings(aggregation="vote")
 
 
-def test_greedy_votes_keep_the_greedy_answer_and_add_the_most_voted_objects_it_lacks():
-    """`greedy_votes` by hand: the greedy answer's 2 objects keep its own places; the samples' median length is 4,
-    so the 2 best-voted objects it lacks are added (votes 3 and 2, ties to the lower mean step), each at the mean
-    of the samples naming it; never shortened; an unparseable greedy answer falls back to votes."""
+def test_greedy_votes_pooled_keeps_the_greedy_answers_objects_and_adds_the_most_voted_ones_it_lacks():
+    """`greedy_votes_pooled` by hand: the greedy answer's 2 objects are kept; the samples' median length is 4, so the
+    2 best-voted objects it lacks are added (votes 3 and 2, ties to the lower mean step); every object is placed at
+    the mean of the answers naming it (the greedy one and the samples); never shortened; an unparseable greedy
+    answer falls back to object votes."""
     greedy = [U("plate", 80, 0.5, 0.5, 0), U("fork", 30, 0.3, 0.5, 0)]
     samples = [
         [U("plate", 81, 0.4, 0.4, 0), U("cup", 1, 0.8, 0.3, 0), U("knife", 60, 0.7, 0.5, 0), U("fork", 30, 0.2, 0.5, 0)],
@@ -168,50 +177,18 @@ def test_greedy_votes_keep_the_greedy_answer_and_add_the_most_voted_objects_it_l
         [U("cup", 1, 0.7, 0.3, 0), U("spoon", 50, 0.3, 0.1, 0), U("fork", 31, 0.1, 0.1, 0), U("knife", 61, 0.1, 0.9, 0)],
         None,
     ]
-    placements, diag = combine(samples, "unmarked", how="greedy_votes", anchor=greedy)
+    placements, diag = combine(samples, "unmarked", how="greedy_votes_pooled", anchor=greedy)
     # votes: cup 3 (mean step 1/3), knife 60 2 (1.5), spoon 50 2 (1.5; knife 60 first seen), plate 80 (held), ...
     assert [p.object for p in placements] == [80, 30, 1, 60]
-    assert (placements[0].x, placements[0].y) == (0.5, 0.5)  # the greedy answer's own place, not the samples'
+    # plate 80: (0.5, 0.5) greedy and (0.5, 0.6) sampled; fork 30: (0.3, 0.5) and (0.2, 0.5)
+    assert (placements[0].x, placements[0].y) == pytest.approx((0.5, 0.55)) and placements[1].x == pytest.approx(0.25)
     assert placements[2].x == pytest.approx(0.7) and placements[3].x == pytest.approx(0.8)  # the voters' means
-    assert diag["aggregation"] == "greedy_votes" and diag["anchor"] == 2 and diag["length"] == 4
+    assert diag["aggregation"] == "greedy_votes_pooled" and diag["anchor"] == 2 and diag["length"] == 4
     assert [a["id"] for a in diag["added"]] == [1, 60] and diag["added"][0]["votes"] == 3 and not diag["failed"]
     longer = greedy + [U("cup", 2, 0.1, 0.2, 0), U("cup", 3, 0.2, 0.2, 0), U("cup", 4, 0.3, 0.2, 0)]
-    assert [p.object for p in combine(samples, "unmarked", how="greedy_votes", anchor=longer)[0]] == [80, 30, 2, 3, 4]
-    assert combine([None, None], "unmarked", how="greedy_votes", anchor=greedy)[1]["failed"] is False  # no samples
-    fallback, d = combine(samples, "unmarked", how="greedy_votes", anchor=None)
+    assert [p.object for p in combine(samples, "unmarked", how="greedy_votes_pooled", anchor=longer)[0]] == [
+        80, 30, 2, 3, 4]
+    alone, d = combine([None, None], "unmarked", how="greedy_votes_pooled", anchor=greedy)  # no sample parsed
+    assert alone == [combine([greedy], "unmarked")[0][i] for i in range(2)] and d["failed"] is False
+    fallback, d = combine(samples, "unmarked", how="greedy_votes_pooled", anchor=None)
     assert d["anchor"] == "unparsed" and fallback == aggregate_votes(samples, "unmarked")[0]
-    # pooled: the same objects and added places; the greedy answer's objects at the mean of it and the samples
-    # naming them (plate 80: (0.5, 0.5) and (0.5, 0.6); fork 30: (0.3, 0.5) and (0.2, 0.5))
-    pooled, d = combine(samples, "unmarked", how="greedy_votes_pooled", anchor=greedy)
-    assert [p.object for p in pooled] == [80, 30, 1, 60] and pooled[2:] == placements[2:]
-    assert (pooled[0].x, pooled[0].y) == pytest.approx((0.5, 0.55)) and pooled[1].x == pytest.approx(0.25)
-    assert d["aggregation"] == "greedy_votes_pooled" and d["added"] == diag["added"]
-
-
-def test_greedy_votes_context_takes_the_length_of_the_persons_own_tables():
-    """`greedy_votes_context` by hand: the context tables' median count (rounded half to even) is the plan's length;
-    a longer greedy answer keeps its best-voted objects in its own order (ties: the earlier step), a shorter one is
-    lengthened by votes as greedy_votes_pooled does; without context tables, the samples' median."""
-    greedy = [U("plate", 80, 0.5, 0.5, 0), U("knife", 61, 0.1, 0.9, 0), U("fork", 30, 0.3, 0.5, 0)]
-    samples = [
-        [U("plate", 80, 0.4, 0.4, 0), U("cup", 1, 0.8, 0.3, 0), U("fork", 30, 0.2, 0.5, 0)],
-        [U("cup", 1, 0.6, 0.3, 0), U("fork", 30, 0.9, 0.5, 0), U("spoon", 50, 0.1, 0.1, 0)],
-        [U("cup", 1, 0.7, 0.3, 0), U("spoon", 50, 0.3, 0.1, 0)],
-    ]
-    pooled, _ = combine(samples, "unmarked", how="greedy_votes_pooled", anchor=greedy)  # median 3: never shortened
-    assert [p.object for p in pooled] == [80, 61, 30]
-    # votes of the greedy answer's objects: fork 30 2, plate 80 1, knife 61 0 -> two kept, in the greedy order
-    cut, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[2, 1, 3, 2])
-    assert [p.object for p in cut] == [80, 30] and cut == [pooled[0], pooled[2]]
-    assert d["aggregation"] == "greedy_votes_context" and d["length"] == 2 and d["length_from"] == "context"
-    assert d["dropped"] == [61] and d["added"] == []
-    # 4.5 rounds half to even -> 4: the greedy answer's 3 and the best-voted object it lacks (cup 1, 3 votes)
-    longer, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[4, 5])
-    assert [p.object for p in longer] == [80, 61, 30, 1] and longer[3].x == pytest.approx(0.7)
-    assert d["length"] == 4 and d["dropped"] == [] and [a["id"] for a in d["added"]] == [1]
-    same, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[])
-    assert same == pooled and d["length_from"] == "samples"
-    unparsed, d = combine(samples, "unmarked", how="greedy_votes_context", anchor=None, context_counts=[1, 1])
-    assert [p.object for p in unparsed] == [1] and d["anchor"] == "unparsed"  # votes at the context's length
-    alone, d = combine([None], "unmarked", how="greedy_votes_context", anchor=greedy, context_counts=[2, 2])
-    assert [p.object for p in alone] == [80, 61] and not d["failed"]  # no sample parsed: the greedy answer's first

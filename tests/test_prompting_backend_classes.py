@@ -28,6 +28,7 @@ from degusta_learn.prompting.cache import sample_keys
 from degusta_learn.scene import read_predictions, save_dataset
 from degusta_learn.shipped import shipped_config, shipped_names
 from degusta_learn.task.prompt import Prompt
+from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 GOOD = "[{'type': 'plate', 'id': 75, 'position': ['D4'], 'cardinal_direction': 'N'}]"
 
@@ -58,12 +59,12 @@ class EchoBackend(Backend):
     def is_local(cls, cfg):  # runs here: USD 0 unless `prices` names the model
         return True
 
-    def __init__(self, cfg):
-        self.model, self.answer = cfg.model, cfg.answer
+    def __init__(self, cfg, model):
+        self.model, self.answer = model.name, cfg.answer
 
     @classmethod
-    def from_config(cls, cfg, grid=None, catalog=None):
-        return cls(cfg)
+    def from_config(cls, cfg, model, decoding, grid=None, catalog=None):
+        return cls(cfg, model)
 
     def complete(self, prompt, n, temperature, max_tokens, seed=None):
         EchoBackend.calls.append(n)
@@ -83,14 +84,14 @@ class MeteredBackend(Backend):
     calls: list[int] = []
 
     @classmethod
-    def image_tokens(cls, width, height, cfg):
+    def image_tokens(cls, width, height, cfg, model):
         return 7
 
     @classmethod
-    def from_config(cls, cfg, grid=None, catalog=None):
+    def from_config(cls, cfg, model, decoding, grid=None, catalog=None):
         api_key(cls.key_env)
         backend = cls()
-        backend.model = cfg.model
+        backend.model = model.name
         return backend
 
     def complete(self, prompt, n, temperature, max_tokens, seed=None):
@@ -110,9 +111,15 @@ def data(tmp_path):
     return save_dataset(make_small_dataset(n_participants=3, n_trials=3), tmp_path / "data")
 
 
-def config(tmp_path, data, backend: dict, **extra) -> str:
+def config(tmp_path, data, backend: dict, model: dict | str | None = None, extra: dict | None = None,
+           **decoding) -> str:
+    """A zero-shot config: `backend` (its section), `model` (the section, or its name), `decoding` keys (n 3,
+    temperature 1) and `extra` top-level keys."""
     cfg = {"method": "mogma", "dataset": str(data), "out": str(tmp_path / "run" / "predictions.jsonl"),
-           "context": 2, "split": "all", "n": 3, "image_size": 64, "concurrency": 1, "backend": backend, **extra}
+           "context": 2, "split": "all", "render_size": 64, "concurrency": 1, "backend": backend,
+           "decoding": {"n": 3, "temperature": 1.0, **decoding}, **(extra or {})}
+    if model is not None:
+        cfg["model"] = {"name": model} if isinstance(model, str) else model
     path = tmp_path / "zeroshot.yaml"
     path.write_text("# degusta predict --config zeroshot.yaml\n" + yaml.safe_dump(cfg))
     return str(path)
@@ -145,22 +152,27 @@ def test_the_shipped_backends_capabilities():
     assert [n for n in BACKENDS if not cls[n].takes_schema] == ["hf"]
     assert {n: cls[n].key_env for n in BACKENDS} == {"openai": "OPENAI_API_KEY", "anthropic": "ANTHROPIC_API_KEY",
                                                      "gemini": "GEMINI_API_KEY", "hf": None, "replay": None}
-    assert cls["openai"].price(openai, {}) == (2.5, 10.0) and cls["openai"].price(local, {}) is None
-    assert cls["openai"].price(backend_config("openai", model="q", base_url="http://localhost/v1"),
+    gpt4o = ModelSettings(name="gpt-4o")
+    assert cls["openai"].price(openai, gpt4o, {}) == (2.5, 10.0) and cls["openai"].price(local, gpt4o, {}) is None
+    assert cls["openai"].price(backend_config("openai", base_url="http://localhost/v1"), ModelSettings(name="q"),
                                {"q": [1.0, 2.0]}) == (1.0, 2.0)  # a local model priced on request
-    assert cls["hf"].price(backend_config("hf", model="gpt-4o"), {}) is None  # local, whatever its name
-    assert cls["anthropic"].price(backend_config("anthropic", model="claude-3-haiku-x"), {}) == (0.25, 1.25)
-    assert cls["gemini"].image_tokens(768, 768, backend_config("gemini")) == 258
-    assert cls["openai"].image_tokens(768, 768, openai) == 765
-    assert cls["openai"].image_tokens(768, 768, backend_config("openai", detail="low")) == 85
+    assert cls["hf"].price(backend_config("hf"), gpt4o, {}) is None  # local, whatever its name
+    assert cls["anthropic"].price(backend_config("anthropic"), ModelSettings(name="claude-3-haiku-x"),
+                                  {}) == (0.25, 1.25)
+    assert cls["gemini"].image_tokens(768, 768, backend_config("gemini"), ModelSettings()) == 258
+    assert cls["openai"].image_tokens(768, 768, openai, gpt4o) == 765
+    assert cls["openai"].image_tokens(768, 768, backend_config("openai", detail="low"), gpt4o) == 85
+    assert [n for n in BACKENDS if cls[n].local_decoding] == ["hf"]
+    assert {n: cls[n].default_model for n in BACKENDS} == {"openai": "gpt-4o", "anthropic": "", "gemini": "",
+                                                           "hf": "", "replay": "replay"}
 
 
 # ----------------------------------------------------------------------------- config sections
 
 
 @pytest.mark.parametrize("backend, key, owner", [
-    ({"name": "openai", "adapter": "x"}, "adapter", "hf"),
-    ({"name": "hf", "model": "m", "timeout": 3}, "timeout", "openai, anthropic, gemini"),
+    ({"name": "openai", "context_answers": True}, "context_answers", "hf"),
+    ({"name": "hf", "timeout": 3}, "timeout", "openai, anthropic, gemini"),
     ({"name": "replay", "path": "p", "base_url": "http://x"}, "base_url", "openai, anthropic, gemini"),
     ({"name": "anthropic", "detail": "low"}, "detail", "openai"),
 ])
@@ -175,8 +187,8 @@ def test_a_key_of_another_backend_is_one_line_naming_it(tmp_path, capsys, backen
 
 
 def test_a_section_takes_its_backends_keys_and_nothing_else(added):
-    with pytest.raises(DegustaError, match=r"unknown key 'backend.modle' \(known keys: max_tokens, model, name, "
-                                           r"path, structured_output\)"):
+    with pytest.raises(DegustaError, match=r"unknown key 'backend.modle' \(known keys: name, path, "
+                                           r"structured_output\)"):
         backend_config("replay", modle="x")
     with pytest.raises(DegustaError, match="backend.answer: not a key of the openai backend but of echo"):
         backend_config("openai", answer="[]")
@@ -198,28 +210,34 @@ def test_shipped_predict_configs_load_into_their_backends_config():
     for name in names:
         path = shipped_config(name)
         _, cfg = build_config(path, [], "method", get_method)
-        section = read_yaml(path)["backend"]
+        raw = read_yaml(path)
+        section = raw["backend"]
         assert type(cfg.backend) is backend_class(section["name"]).config_class, name
         assert all(getattr(cfg.backend, k) == v for k, v in section.items()), name
+        assert all(getattr(cfg.model, k) == v for k, v in raw["model"].items()), name
+        assert all(getattr(cfg.decoding, k) == v for k, v in raw["decoding"].items()), name
 
 
 def test_cache_keys_are_those_of_the_one_flat_config():
-    """Keys computed by the code before the per-backend configs: existing caches stay valid."""
+    """Keys computed by the code before the per-backend configs (and before the model and its decoding left the
+    backend section for `model:` and `decoding:`): existing caches stay valid."""
     golden = {
-        "openai": ({"model": "gpt-4o"}, "406e499bdd7cfe26b26ef03658921ea947bee84b823b8295c93e56e96cd4c98b"),
-        "openai_local": ({"model": "qwen", "base_url": "http://127.0.0.1:8000/v1", "detail": "low", "timeout": 5,
-                          "api_key_env": "X"}, "b7fecdb2b67071d1f80de52fa2af80f4e428f2b4b070a2f533ba2cc36f4e87dc"),
-        "anthropic": ({"model": "claude-3-haiku-20240307", "base_url": "http://proxy/v1"},
+        "openai": ("gpt-4o", {}, "406e499bdd7cfe26b26ef03658921ea947bee84b823b8295c93e56e96cd4c98b"),
+        "openai_local": ("qwen", {"base_url": "http://127.0.0.1:8000/v1", "detail": "low", "timeout": 5,
+                                  "api_key_env": "X"}, "b7fecdb2b67071d1f80de52fa2af80f4e428f2b4b070a2f533ba2cc36f4e87dc"),
+        "anthropic": ("claude-3-haiku-20240307", {"base_url": "http://proxy/v1"},
                       "8c90649597900f538ed8460b8135dee4bc58f308060ccfebda7c13e12d77a318"),
-        "gemini": ({"model": "gemini-1.5-pro"}, "795a2d2ede2850697f0329716f8981887d4f507ac908cec25f63df9caccbbdb7"),
-        "replay": ({"path": "answers.jsonl", "model": "gpt-4o"},  # the default model before "replay"
+        "gemini": ("gemini-1.5-pro", {}, "795a2d2ede2850697f0329716f8981887d4f507ac908cec25f63df9caccbbdb7"),
+        "replay": ("gpt-4o", {"path": "answers.jsonl"},  # the default model before "replay"
                    "0b83b2cbab210c58b47f5d68972ace73b1a9e8ebeeccea0f0cbb439b6e2b1f79"),
     }
     prompt = Prompt("mogma", ["objects:", "the task"], episode="p001/t2/k4")
-    for tag, (keys, expected) in golden.items():
+    api = DecodingSettings().resolved(local=False)
+    for tag, (model, keys, expected) in golden.items():
         cfg = backend_config(tag.split("_")[0], **keys)
-        assert sample_keys(prompt, cfg, 1.0, cfg.max_tokens, 0, 2)[1] == expected, tag
-    structured = sample_keys(prompt, backend_config("openai"), 0.5, 100, None, 1, schema={"type": "object"})[0]
+        assert sample_keys(prompt, cfg, ModelSettings(name=model), api, 1.0, 1024, 0, 2)[1] == expected, tag
+    structured = sample_keys(prompt, backend_config("openai"), ModelSettings(name="gpt-4o"), api, 0.5, 100, None, 1,
+                             schema={"type": "object"})[0]
     assert structured == "3ab364389e2742d7f28794fda9aed6c653e369ade34351ee7454dc3311b71e69"
 
 
@@ -229,18 +247,36 @@ def test_hf_answers_cached_before_the_decoding_changed_are_not_reused():
     from degusta_learn.prompting.backends.hf import DECODING_VERSION
 
     prompt = Prompt("mogma", ["objects:", "the task"], episode="p001/t2/k4")
-    cfg = backend_config("hf", model="no/such/folder", adapter="no/adapter", constrained=True, dtype="float32",
-                         image_size=64, device="cpu", max_tokens=1024)
-    key = sample_keys(prompt, cfg, 1.0, cfg.max_tokens, 0, 2)[1]
-    assert DECODING_VERSION >= 2 and cfg.answer_fields()["decoding"] == DECODING_VERSION
+    cfg = backend_config("hf", device="cpu")
+    model = ModelSettings(name="no/such/folder", adapter="no/adapter", dtype="float32", image_size=64)
+    decoding = DecodingSettings(constrained=True)
+    key = sample_keys(prompt, cfg, model, decoding, 1.0, 1024, 0, 2)[1]
+    assert DECODING_VERSION >= 2 and cfg.answer_fields(model, decoding)["decoding"] == DECODING_VERSION
     assert key != "aec74a5493733d442445e81f8c45121f0c2627670c63f2d108d0747018b0cc1c"
+
+
+def test_hf_cache_keys_follow_every_model_and_decoding_key():
+    """The keys that moved from `backend:` to `model:` and `decoding:` still key hf answers: a different value of any
+    of them asks again (the same values key what they keyed as backend keys, pinned above for the API backends)."""
+    prompt = Prompt("mogma", ["objects:", "the task"], episode="p001/t2/k4")
+    cfg = backend_config("hf")
+    base = (ModelSettings(name="m", adapter="a"), DecodingSettings(constrained=True))
+    seen = {sample_keys(prompt, cfg, *base, 1.0, 100, 0, 1)[0]}
+    for model, decoding in [(ModelSettings(name="m"), base[1]), (ModelSettings(name="m", adapter="a", dtype="float32"),
+                            base[1]), (ModelSettings(name="m", adapter="a", image_size=64), base[1]),
+                            (base[0], DecodingSettings(constrained=False)),
+                            (base[0], DecodingSettings(constrained=True, on_repeat="stop")),
+                            (base[0], DecodingSettings(constrained=True, report_unconstrained=False))]:
+        seen.add(sample_keys(prompt, cfg, model, decoding, 1.0, 100, 0, 1)[0])
+    assert len(seen) == 7
+    assert sample_keys(prompt, backend_config("hf", context_answers=True), *base, 1.0, 100, 0, 1)[0] not in seen
 
 
 # ----------------------------------------------------------------------------- the runner asks the class
 
 
 def test_a_new_backend_is_one_class_and_its_registry_entry(tmp_path, data, added):
-    path = config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"})
+    path = config(tmp_path, data, {"name": "echo", "answer": GOOD}, "echo-1")
     out = run_predict(path)
     preds = read_predictions(out, make_small_dataset(n_participants=3, n_trials=3).catalog)
     assert len(preds) == 9 and not any(p.failed for p in preds) and preds[0].placements[0].object == 75
@@ -250,28 +286,28 @@ def test_a_new_backend_is_one_class_and_its_registry_entry(tmp_path, data, added
     assert first["base_url"] is None and first["requests"] == 9
     run_predict(path)  # cacheable: the re-run is served from the response cache
     assert EchoBackend.calls == [3] * 9 and ledger(tmp_path)["samples_cached"] == 27
-    run_predict(config(tmp_path, data, {"name": "echo", "answer": "[]", "model": "echo-1"}))
+    run_predict(config(tmp_path, data, {"name": "echo", "answer": "[]"}, "echo-1"))
     assert EchoBackend.calls == [3] * 18 and ledger(tmp_path)["samples_cached"] == 0  # `answer` joins the cache key
 
 
 def test_greedy_votes_ask_the_greedy_answer_apart_and_share_the_cache_with_plain_runs(tmp_path, data, added, capsys):
-    """`aggregation: greedy_votes`: a request for the n samples and one at temperature 0 for the greedy answer,
+    """`aggregation: greedy_votes_pooled`: a request for the n samples and one at temperature 0 for the greedy answer,
     counted so by the dry run; its answers are cached under the keys a sampled run and a greedy run use, so
     either re-run asks nothing."""
-    path = config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"}, aggregation="greedy_votes")
+    path = config(tmp_path, data, {"name": "echo", "answer": GOOD}, "echo-1", aggregation="greedy_votes_pooled")
     assert run_predict(path, dry_run=True) is None
     assert "requests: 18 for 36 samples" in capsys.readouterr().out
     run_predict(path)
     assert EchoBackend.calls == [3, 1] * 9 and ledger(tmp_path)["requests"] == 18
-    run_predict(config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"}, aggregation="votes"))
-    run_predict(config(tmp_path, data, {"name": "echo", "answer": GOOD, "model": "echo-1"}, n=1, temperature=0.0))
+    run_predict(config(tmp_path, data, {"name": "echo", "answer": GOOD}, "echo-1", aggregation="steps"))
+    run_predict(config(tmp_path, data, {"name": "echo", "answer": GOOD}, "echo-1", n=1, temperature=0.0))
     assert EchoBackend.calls == [3, 1] * 9 and ledger(tmp_path)["samples_cached"] == 9
 
 
 def test_a_paid_per_sample_backend_is_asked_one_sample_at_a_time_priced_and_redacted(
         tmp_path, data, added, monkeypatch, capsys):
     monkeypatch.setenv("METERED_API_KEY", "metered-secret-0042")
-    path = config(tmp_path, data, {"name": "metered", "model": "metered-1"}, prices={"metered-1": [1.0, 2.0]})
+    path = config(tmp_path, data, {"name": "metered"}, "metered-1", extra={"prices": {"metered-1": [1.0, 2.0]}})
     assert run_predict(path, dry_run=True) is None
     dry = capsys.readouterr().out
     assert "requests: 27 for 27 samples" in dry and "at USD 1 / 2 per 1M" in dry
@@ -289,7 +325,7 @@ def test_image_tokens_and_requests_of_the_estimate_come_from_the_class(tmp_path,
     from degusta_learn.prompting.runner import ZeroShotRun
     from degusta_learn.scene import load_dataset, make_episodes
 
-    path = config(tmp_path, data, {"name": "metered"})
+    path = config(tmp_path, data, {"name": "metered"}, "metered-1")
     _, cfg = build_config(path, [], "method", get_method)
     ds = load_dataset(data)
     run = ZeroShotRun(cfg, ds)
@@ -305,14 +341,14 @@ def test_a_dry_run_builds_no_backend_loads_no_model_and_needs_no_key(tmp_path, d
     for name in BACKENDS:
         monkeypatch.setattr(backend_class(name), "from_config", classmethod(refuse))
     monkeypatch.delenv("ANTHROPIC_API_KEY", raising=False)
-    for backend in ({"name": "hf", "model": str(tmp_path / "no_model"), "adapter": str(tmp_path / "no_adapter")},
-                    {"name": "anthropic", "model": "claude-3-5-sonnet"}, {"name": "replay"}):
-        assert run_predict(config(tmp_path, data, backend), dry_run=True) is None
+    for backend, model in (({"name": "hf"}, {"name": str(tmp_path / "no_model"), "adapter": str(tmp_path / "no_adapter")}),
+                           ({"name": "anthropic"}, "claude-3-5-sonnet"), ({"name": "replay"}, None)):
+        assert run_predict(config(tmp_path, data, backend, model), dry_run=True) is None
         assert f"dry run: mogma with {backend['name']}" in capsys.readouterr().out
 
 
 def test_hf_counts_its_own_image_tokens_from_the_processor():
-    """The dry-run estimate of an hf row counts the model's image tokens at backend.image_size (the tiny
+    """The dry-run estimate of an hf row counts the model's image tokens at model.image_size (the tiny
     Idefics3: 4 px per token side, so 64 px -> 8 x 8 and 128 px -> 16 x 16), not OpenAI's tile rule."""
     import sys
     from pathlib import Path
@@ -323,7 +359,8 @@ def test_hf_counts_its_own_image_tokens_from_the_processor():
     from degusta_learn.prompting.backends.hf import HFBackend
 
     model = str(tiny_dir("idefics3"))
-    assert HFBackend.image_tokens(448, 448, backend_config("hf", model=model, image_size=64)) == 64
-    assert HFBackend.image_tokens(448, 448, backend_config("hf", model=model, image_size=128)) == 256
-    generic = backend_class("openai").image_tokens(448, 448, backend_config("openai"))
-    assert HFBackend.image_tokens(448, 448, backend_config("hf", model="no/such/model")) == generic
+    hf = backend_config("hf")
+    assert HFBackend.image_tokens(448, 448, hf, ModelSettings(name=model, image_size=64)) == 64
+    assert HFBackend.image_tokens(448, 448, hf, ModelSettings(name=model, image_size=128)) == 256
+    generic = backend_class("openai").image_tokens(448, 448, backend_config("openai"), ModelSettings(name="gpt-4o"))
+    assert HFBackend.image_tokens(448, 448, hf, ModelSettings(name="no/such/model")) == generic

@@ -12,6 +12,7 @@ from conftest import make_small_dataset
 from degusta_learn.config import from_dict
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import get_method, run_predict
+from degusta_learn.vlm.settings import ModelSettings
 from degusta_learn.prompting.backends.base import (
     BACKENDS,
     BackendConfig,
@@ -40,8 +41,8 @@ def test_config_names_the_bad_key():
     with pytest.raises(DegustaError, match="backend.name: unknown backend 'gpt'"):
         BackendConfig(name="gpt")
     spec = get_method("mogma")
-    with pytest.raises(DegustaError, match="n: expected >= 1"):
-        from_dict(spec.config_cls, {"method": "mogma", "dataset": "d", "out": "o", "n": 0})
+    with pytest.raises(DegustaError, match="decoding.n: expected a value from 1 to 1,000, got 0"):
+        from_dict(spec.config_cls, {"method": "mogma", "dataset": "d", "out": "o", "decoding": {"n": 0}})
     with pytest.raises(DegustaError, match="unknown key 'backend.modle'"):
         from_dict(spec.config_cls, {"method": "mogma", "dataset": "d", "out": "o", "backend": {"modle": "x"}})
 
@@ -49,17 +50,18 @@ def test_config_names_the_bad_key():
 def test_keys_come_only_from_the_environment(monkeypatch):
     monkeypatch.delenv("OPENAI_API_KEY", raising=False)
     with pytest.raises(DegustaError, match="OPENAI_API_KEY is not set"):
-        make_backend(backend_config("openai", model="gpt-4o"))
+        make_backend(backend_config("openai"), ModelSettings(name="gpt-4o"))
     # a local server needs none, and never gets the OpenAI key unless asked to
     monkeypatch.setenv("OPENAI_API_KEY", "sk-real-openai-key-000")
-    backend = make_backend(backend_config("openai", base_url="http://127.0.0.1:8000/v1"))
+    backend = make_backend(backend_config("openai", base_url="http://127.0.0.1:8000/v1"), ModelSettings(name="q"))
     assert backend.client.api_key == "not-needed"
     monkeypatch.setenv("LOCAL_KEY", "local-secret-123")
-    backend = make_backend(backend_config("openai", base_url="http://127.0.0.1:8000/v1", api_key_env="LOCAL_KEY"))
+    backend = make_backend(backend_config("openai", base_url="http://127.0.0.1:8000/v1", api_key_env="LOCAL_KEY"),
+                           ModelSettings(name="q"))
     assert backend.client.api_key == "local-secret-123"
     monkeypatch.delenv("ANTHROPIC_API_KEY", raising=False)
     with pytest.raises(DegustaError, match="ANTHROPIC_API_KEY is not set"):
-        make_backend(backend_config("anthropic", model="claude-3-haiku-20240307"))
+        make_backend(backend_config("anthropic"), ModelSettings(name="claude-3-haiku-20240307"))
 
 
 def test_redact_scrubs_keys(monkeypatch):
@@ -71,11 +73,11 @@ def test_missing_extras_say_what_to_install(monkeypatch):
     monkeypatch.setenv("GEMINI_API_KEY", "x")
     monkeypatch.setitem(sys.modules, "google.genai", None)  # as if google-genai were not installed
     with pytest.raises(DegustaError, match=r"pip install degusta_learn\[gemini\]"):
-        make_backend(backend_config("gemini", model="gemini-1.5-pro"))
+        make_backend(backend_config("gemini"), ModelSettings(name="gemini-1.5-pro"))
     monkeypatch.setenv("ANTHROPIC_API_KEY", "x")
     monkeypatch.setitem(sys.modules, "anthropic", None)
     with pytest.raises(DegustaError, match=r"pip install degusta_learn\[anthropic\]"):
-        make_backend(backend_config("anthropic", model="claude-3-haiku-20240307"))
+        make_backend(backend_config("anthropic"), ModelSettings(name="claude-3-haiku-20240307"))
 
 
 def test_replay_reproduces_a_run_without_calls(tmp_path):
@@ -86,7 +88,7 @@ def test_replay_reproduces_a_run_without_calls(tmp_path):
     rows = [{"episode": ep.id, "sample": i, "text": GOOD} for ep in episodes for i in range(3)]
     rows[0]["text"] = "no idea"
     answers.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    base = [f"dataset={data}", "context=2", "split=all", "n=3", "image_size=64", "method=mogma",
+    base = [f"dataset={data}", "context=2", "split=all", "decoding.n=3", "render_size=64", "method=mogma",
             "backend.name=replay"]
     out1 = run_predict(None, base + [f"backend.path={answers}", f"out={tmp_path / 'r1' / 'predictions.jsonl'}"])
     p1 = read_predictions(out1, ds.catalog)
@@ -107,9 +109,9 @@ def test_replay_reproduces_a_run_without_calls(tmp_path):
     assert ledger["cost_usd"] == 0
 
 
-def test_predict_aggregates_by_votes_from_the_same_answers(tmp_path):
-    """`aggregation: votes` through predict: three recorded answers naming the same objects in other orders; the
-    paper's per-step modes lose one, the votes keep all three, in their mean order; a misspelt choice is refused
+def test_predict_aggregates_by_steps_from_the_same_answers(tmp_path):
+    """`aggregation: steps` through predict: three recorded answers naming the same objects in other orders; the
+    paper's per-step modes lose one; the aggregation is recorded; a misspelt or removed choice (votes) is refused
     naming the key."""
     ds = make_small_dataset(n_participants=3, n_trials=3)
     data = save_dataset(ds, tmp_path / "data")
@@ -126,25 +128,25 @@ def test_predict_aggregates_by_votes_from_the_same_answers(tmp_path):
     answers.write_text("".join(json.dumps({"episode": ep.id, "sample": i,
                                            "text": "[" + ", ".join(item(*it) for it in order) + "]"}) + "\n"
                                for ep in episodes for i, order in enumerate(orders)))
-    base = [f"dataset={data}", "context=2", "split=all", "n=3", "image_size=64", "method=mogma",
+    base = [f"dataset={data}", "context=2", "split=all", "decoding.n=3", "render_size=64", "method=mogma",
             "backend.name=replay", f"backend.path={answers}"]
     got = {}
-    for how in ("steps", "votes"):
-        out = run_predict(None, base + [f"aggregation={how}", f"out={tmp_path / how / 'predictions.jsonl'}"])
+    for how in ("steps",):
+        out = run_predict(None, base + [f"decoding.aggregation={how}", f"out={tmp_path / how / 'predictions.jsonl'}"])
         got[how] = read_predictions(out, ds.catalog)
         assert all(p.diagnostics["aggregation"] == how for p in got[how])
         assert json.loads((tmp_path / how / "ledger.json").read_text())["aggregation"] == how
     assert [p.object for p in got["steps"][0].placements] == [plate, fork]  # step 1's tie: the plate again
-    assert [p.object for p in got["votes"][0].placements] == [plate, cup, fork]  # mean steps 0.33, 1, 1.67
     with pytest.raises(DegustaError, match="aggregation"):
-        run_predict(None, base + ["aggregation=vote", f"out={tmp_path / 'bad' / 'predictions.jsonl'}"])
+        run_predict(None, base + ["decoding.aggregation=votes", f"out={tmp_path / 'bad' / 'predictions.jsonl'}"])
     assert not (tmp_path / "bad").exists()
 
 
 def test_predict_lengthens_the_greedy_answer_by_votes(tmp_path):
-    """`aggregation: greedy_votes` through predict: the greedy answer (recorded as sample "greedy", asked at
-    temperature 0) keeps its one object, lengthened to the samples' median length (3) by their most named objects;
-    its text is kept in the diagnostics, so a predictions file replays the same plan; temperature 0 is refused."""
+    """`aggregation: greedy_votes_pooled` through predict: the greedy answer (recorded as sample "greedy", asked at
+    temperature 0) keeps its one object, lengthened to the samples' median length (3) by their most named objects,
+    each object placed from every answer naming it; its text is kept in the diagnostics, so a predictions file
+    replays the same plan; temperature 0 is refused."""
     ds = make_small_dataset(n_participants=3, n_trials=3)
     data = save_dataset(ds, tmp_path / "data")
     episodes = make_episodes(ds, 2, "all")
@@ -161,37 +163,19 @@ def test_predict_lengthens_the_greedy_answer_by_votes(tmp_path):
     rows += [{"episode": ep.id, "sample": "greedy", "text": answer(("fork", fork, "H8"))} for ep in episodes]
     answers = tmp_path / "answers.jsonl"
     answers.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    base = [f"dataset={data}", "context=2", "split=all", "n=3", "image_size=64", "method=mogma", "temperature=0.5",
-            "backend.name=replay", "aggregation=greedy_votes"]
+    base = [f"dataset={data}", "context=2", "split=all", "decoding.n=3", "render_size=64", "method=mogma", "decoding.temperature=0.5",
+            "backend.name=replay", "decoding.aggregation=greedy_votes_pooled"]
     first = run_predict(None, base + [f"backend.path={answers}", f"out={tmp_path / 'a' / 'predictions.jsonl'}"])
     got = read_predictions(first, ds.catalog)
     assert [p.object for p in got[0].placements] == [fork, plate, cup]  # the greedy fork, then 3 and 3 votes
-    assert got[0].placements[0].x > 0.8  # the greedy answer's place (H8), not the samples' (C3)
+    # the greedy fork placed from its own answer (H8) and the two samples naming it (C3)
+    assert got[0].placements[0].x == pytest.approx(Grid(8, 8).decode_weighted([["H8"], ["C3"], ["C3"]])[0])
     assert got[0].diagnostics["greedy_response"].startswith("[{'type': 'fork'")
     assert [a["id"] for a in got[0].diagnostics["added"]] == [plate, cup]
     again = run_predict(None, base + [f"backend.path={first}", f"out={tmp_path / 'b' / 'predictions.jsonl'}"])
     assert [p.placements for p in read_predictions(again, ds.catalog)] == [p.placements for p in got]
-    # pooled: the same objects, the greedy fork placed from its own answer (H8) and the two samples naming it (C3)
-    pooled = run_predict(None, base + [f"backend.path={first}", "aggregation=greedy_votes_pooled",
-                                       f"out={tmp_path / 'p' / 'predictions.jsonl'}"])
-    fork_pooled = read_predictions(pooled, ds.catalog)[0].placements
-    assert [p.object for p in fork_pooled] == [fork, plate, cup] and fork_pooled[1:] == got[0].placements[1:]
-    grid = Grid(8, 8)
-    assert fork_pooled[0].x == pytest.approx(grid.decode_weighted([["H8"], ["C3"], ["C3"]])[0])
-    # context: each episode's plan as long as the median count of its two context tables (5, 4 or 3 here; the
-    # samples name 3 objects, so each plan has them all, and the length asked is the tables')
-    ctx = run_predict(None, base + [f"backend.path={first}", "aggregation=greedy_votes_context",
-                                    f"out={tmp_path / 'x' / 'predictions.jsonl'}"])
-    for pred, ep in zip(read_predictions(ctx, ds.catalog), episodes):
-        length = round(sum(len(ds.arrangement(ep.participant, t).placements) for t in ep.context) / 2)
-        assert pred.diagnostics["length"] == length and pred.diagnostics["length_from"] == "context"
-        assert [p.object for p in pred.placements] == [fork, plate, cup]
-    assert {read_predictions(ctx, ds.catalog)[i].diagnostics["length"] for i in range(len(episodes))} == {3, 4, 5}
-    with pytest.raises(DegustaError, match="temperature: expected > 0 with aggregation greedy_votes"):
-        run_predict(None, base + ["temperature=0", f"backend.path={answers}",
-                                  f"out={tmp_path / 'c' / 'predictions.jsonl'}"])
-    with pytest.raises(DegustaError, match="aggregation: expected one that needs no context tables with context 0"):
-        run_predict(None, base + ["context=0", "aggregation=greedy_votes_context", f"backend.path={answers}",
+    with pytest.raises(DegustaError, match="decoding.aggregation: greedy_votes_pooled lengthens a greedy answer"):
+        run_predict(None, base + ["decoding.temperature=0", f"backend.path={answers}",
                                   f"out={tmp_path / 'c' / 'predictions.jsonl'}"])
     assert not (tmp_path / "c").exists()
 
@@ -202,10 +186,11 @@ def test_prices_and_image_tokens():
     assert price("my-local-model") is None and price("m", {"m": [1, 2]}) == (1, 2)
     # OpenAI's published examples: 1024x1024 high detail = 765 tokens; 2048x4096 = 1105; low = 85
     tokens, openai, low = backend_class("openai").image_tokens, backend_config("openai"), backend_config(detail="low")
-    assert tokens(1024, 1024, openai) == 765 and tokens(2048, 4096, openai) == 1105
-    assert tokens(448, 448, low) == 85 and tokens(448, 448, openai) == 255
+    gpt4o = ModelSettings(name="gpt-4o")
+    assert tokens(1024, 1024, openai, gpt4o) == 765 and tokens(2048, 4096, openai, gpt4o) == 1105
+    assert tokens(448, 448, low, gpt4o) == 85 and tokens(448, 448, openai, gpt4o) == 255
     # (1000 x 1000) / 750, rounded up
-    assert backend_class("anthropic").image_tokens(1000, 1000, backend_config("anthropic")) == 1334
+    assert backend_class("anthropic").image_tokens(1000, 1000, backend_config("anthropic"), gpt4o) == 1334
     # the paper's anchor at its 2024 GPT-4o price: 8,035 in + 6,250 out ~ USD 0.13 (reported 0.15, rounded up per column)
     ledger = Ledger(price("gpt-4o-2024-05-13"))
     ledger.record(8035, 6250, 5, fallback=(0, 0))

@@ -43,7 +43,7 @@ def test_decoding_diagnostics_count_closes_and_free_parses():
     free = [Completion("x", decoding={"constrained": False, "cut": True}), Completion(GOOD, decoding={"constrained": False, "cut": False})]
     assert decoding_diagnostics(free, "grid", cat, GRID) == {"constrained": False, "known": 2, "forced_closes": 1}
     assert decoding_diagnostics([Completion(GOOD), None], "grid", cat, GRID) == {}  # remote / cached: nothing claimed
-    # backend.report_unconstrained: false: no free answers were decoded, so none is claimed (not even the unchanged)
+    # decoding.report_unconstrained: false: no free answers were decoded, so none is claimed (not even the unchanged)
     off = [Completion(GOOD, 10, 20, {**c.decoding, "free_pass": False}) for c in (constrained(False), constrained(True))]
     d = decoding_diagnostics(off, "grid", cat, GRID)
     assert d["grammar_changed"] == 1 and (d["free_known"], d["free_parsed"]) == (0, 0)
@@ -74,7 +74,7 @@ def test_summary_line_labels_and_answer_table():
         [Prediction(p.episode, p.participant, p.target, p.method, p.placements, False,
                     {k: v for k, v in p.diagnostics.items() if k != "n_item_repeats"}) for p in items])
     unmeasured = failure_summary([_prediction(ep, {**dec, "free_known": 0, "free_parsed": 0}) for ep in eps])
-    assert unmeasured.endswith("the grammar changed 9 (their free answers not decoded: backend.report_unconstrained "
+    assert unmeasured.endswith("the grammar changed 9 (their free answers not decoded: decoding.report_unconstrained "
                                "is false)") and "would parse" not in unmeasured
     free = [_prediction(ep, {"constrained": False, "known": 4, "forced_closes": 2}, parsed=3) for ep in eps]
     assert "6 of 12 answers cut off by the token budget (50.0%)" in failure_summary(free)
@@ -84,13 +84,13 @@ def test_summary_line_labels_and_answer_table():
     rows += [r.__class__(**{**r.to_row(), "method": "api"})
              for r in score_predictions(dataset(), [_prediction(ep, None, parsed=2) for ep in eps])]
     # how the answers were combined, from the diagnostics: a known name, else not recorded (untrusted input)
-    for name, how in (("voted", "votes"), ("hostile", "<script>"), ("greedy", "steps")):
+    for name, how in (("voted", "greedy_votes_pooled"), ("hostile", "<script>"), ("greedy", "steps")):
         rows += [r.__class__(**{**r.to_row(), "method": name}) for r in score_predictions(
             dataset(), [_prediction(ep, None, n=1 if name == "greedy" else 5, parsed=1, aggregation=how)
                         for ep in eps])]
     rows += [r.__class__(**{**r.to_row(), "method": "mixed"}) for r in score_predictions(  # files put together
         dataset(), [_prediction(ep, None, n=n, parsed=1, aggregation=how)
-                    for ep, n, how in zip(eps, (1, 5, 5), ("steps", "votes", "steps"))])]
+                    for ep, n, how in zip(eps, (1, 5, 5), ("steps", "greedy_votes_pooled", "steps"))])]
     summary = summarize(rows, n_bootstrap=50)
     s = summary["mogma"]
     assert s["constrained"] and s["parse_rate"] == 1.0 and s["parse_rate_free"] == 0.25 and s["forced_close_rate"] == 0.25
@@ -101,15 +101,15 @@ def test_summary_line_labels_and_answer_table():
     assert "| mogma + grammar | answer grammar | 4, not recorded | 1.000 | 0.250 | 0.250 |" in table
     assert "| free | free | 4, not recorded | 0.750 | 0.750 | 0.500 |" in table
     assert "| api | not recorded | 4, not recorded | 0.500 | - | - |" in table
-    assert "| voted | not recorded | 5, votes | 0.200 | - | - |" in table
+    assert "| voted | not recorded | 5, greedy_votes_pooled | 0.200 | - | - |" in table
     assert "| hostile | not recorded | 5, not recorded | 0.200 |" in table and "script" not in table.split("|---|")[-1]
     assert "| greedy | not recorded | 1 | 1.000 |" in table  # one answer: nothing combined
-    assert "| mixed | not recorded | 1-5, steps + votes |" in table
+    assert "| mixed | not recorded | 1-5, greedy_votes_pooled + steps |" in table
 
 
 
 def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thread):
-    """`degusta predict` with the shipped constrained zero-shot config (max_tokens: auto) on the tiny model,
+    """`degusta predict` with the shipped constrained zero-shot config (max_new_tokens: auto) on the tiny model,
     then `degusta evaluate`: the diagnostics, the summary line and the report all say "+ grammar"."""
     from degusta_learn.evaluate import evaluate_files
     from degusta_learn.methods import run_predict
@@ -121,7 +121,7 @@ def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thr
     lines: list[str] = []
     out = run_predict(CONFIGS / "predict_hf_tiny_zeroshot.yaml", [
         f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'pred' / 'predictions.jsonl'}",
-        f"backend.model={tiny_dir('idefics3')}", "image_size=128"], log=lines.append)
+        f"model.name={tiny_dir('idefics3')}", "render_size=128"], log=lines.append)
     preds = read_predictions(out, dataset().catalog)
     budget = HFBackend(str(tiny_dir("idefics3")), constrained=True, device="cpu", grid=GRID,
                        catalog=dataset().catalog).token_budget(dataset(), "mogma")["max_new_tokens"]
@@ -135,13 +135,13 @@ def test_predict_with_the_grammar_records_and_reports_it(tmp_path, one_torch_thr
     text = (Path(report) / "report.md").read_text()
     # (random weights write one object again and again: on_repeat skip keeps it once, degenerate, to the budget)
     assert "mogma + grammar" in text and " | answer grammar | 1 | 1.000 | 0.000 | 1.000 |" in text
-    # backend.report_unconstrained: false: the same answer, no free answer decoded, and the summary says so
+    # decoding.report_unconstrained: false: the same answer, no free answer decoded, and the summary says so
     lines.clear()
     off = run_predict(CONFIGS / "predict_hf_tiny_zeroshot.yaml", [
         f"dataset={data}", f"episodes={episodes}", "context=2", f"out={tmp_path / 'off' / 'predictions.jsonl'}",
-        f"backend.model={tiny_dir('idefics3')}", "image_size=128", "backend.report_unconstrained=false"],
+        f"model.name={tiny_dir('idefics3')}", "render_size=128", "decoding.report_unconstrained=false"],
         log=lines.append)
     (p_off,) = read_predictions(off, dataset().catalog)
     assert p_off.diagnostics["responses"] == preds[0].diagnostics["responses"]
     assert p_off.diagnostics["decoding"]["free_known"] == 0 and p_off.diagnostics["decoding"]["free_responses"] == [None]
-    assert any("their free answers not decoded: backend.report_unconstrained is false" in line for line in lines), lines
+    assert any("their free answers not decoded: decoding.report_unconstrained is false" in line for line in lines), lines

@@ -59,8 +59,12 @@ def dataset_dir(tmp_path):
 
 def write_config(tmp_path, server, dataset_dir, **extra):
     cfg = {"method": "mogma", "dataset": str(dataset_dir), "out": str(tmp_path / "run" / "predictions.jsonl"),
-           "context": 2, "split": "all", "n": 5, "image_size": 64, "concurrency": 2, "backoff": 0.01,
-           "backend": {"name": "openai", "model": "fake-model", "base_url": server.url, "timeout": 10}}
+           "context": 2, "split": "all", "render_size": 64, "concurrency": 2, "backoff": 0.01,
+           "backend": {"name": "openai", "base_url": server.url, "timeout": 10}, "model": {"name": "fake-model"},
+           "decoding": {"n": 5, "temperature": 1.0}}
+    for k in ("n", "temperature"):  # decoding keys given as keywords
+        if k in extra:
+            cfg["decoding"][k] = extra.pop(k)
     for k, v in extra.items():
         if isinstance(v, dict) and isinstance(cfg.get(k), dict):
             cfg[k].update(v)

@@ -143,9 +143,11 @@ def dataset_dir(tmp_path):
 
 def config(tmp_path, url, dataset_dir, name="zeroshot.yaml", **extra):
     cfg = {"method": "mogma", "dataset": str(dataset_dir), "out": str(tmp_path / "run" / "predictions.jsonl"),
-           "context": 2, "split": "all", "n": 3, "image_size": 64, "concurrency": 2, "backoff": 0,
-           "max_retries": 1, "backend": {"name": "openai", "model": "fake", "base_url": url, "timeout": 10,
-                                         "structured_output": True}}
+           "context": 2, "split": "all", "render_size": 64, "concurrency": 2, "backoff": 0,
+           "max_retries": 1, "backend": {"name": "openai", "base_url": url, "timeout": 10, "structured_output": True},
+           "model": {"name": "fake"}, "decoding": {"n": 3, "temperature": 1.0}}
+    if "n" in extra:
+        cfg["decoding"]["n"] = extra.pop("n")
     for k, v in extra.items():
         if isinstance(v, dict) and isinstance(cfg.get(k), dict):
             cfg[k].update(v)
@@ -286,8 +288,8 @@ def test_free_text_and_structured_answers_never_mix_in_the_cache(tmp_path, datas
 
 def test_hf_and_unknown_paths_are_one_line_errors():
     with pytest.raises(DegustaError, match=r"^backend.structured_output: the hf backend takes no JSON schema.*"
-                                           r"backend.constrained: true"):
-        BackendConfig(name="hf", model="m", structured_output=True)
+                                           r"decoding.constrained: true"):
+        BackendConfig(name="hf", structured_output=True)
     backend_config("replay", path="x", structured_output=True)  # replay: ignored (both kinds parse)
 
 
@@ -340,8 +342,8 @@ def test_anthropic_wire_shape(tmp_path, dataset_dir, monkeypatch):
                      "usage": {"input_tokens": 100, "output_tokens": 10}}
 
     monkeypatch.setenv("ANTHROPIC_API_KEY", "test-key-not-real")
-    out, requests = run_served(reply, tmp_path, dataset_dir, n=2,
-                               backend={"name": "anthropic", "model": "claude-x"})
+    out, requests = run_served(reply, tmp_path, dataset_dir, n=2, backend={"name": "anthropic"},
+                               model={"name": "claude-x"})
     assert len(requests) == 18  # one request a sample
     preds = read_predictions(out, make_small_dataset(3, 3).catalog)
     assert all(p.diagnostics["failures"] == [] for p in preds)
@@ -377,8 +379,8 @@ def test_gemini_wire_shape(tmp_path, dataset_dir, monkeypatch):
                      "usageMetadata": {"promptTokenCount": 100, "candidatesTokenCount": 10}}
 
     monkeypatch.setenv("GEMINI_API_KEY", "test-key-not-real")
-    out, requests = run_served(reply, tmp_path, dataset_dir, n=1,
-                               backend={"name": "gemini", "model": "gemini-x"})
+    out, requests = run_served(reply, tmp_path, dataset_dir, n=1, backend={"name": "gemini"},
+                               model={"name": "gemini-x"})
     assert len(requests) == 9
     items = seen[0]["properties"][STRUCTURED_KEY]["items"]
     ids = (items.get("anyOf") or items["any_of"])[0]["properties"]["id"]  # google-genai writes proto names

@@ -83,3 +83,18 @@ def test_each_shipped_bases_card_gives_the_command_that_rebuilds_it_from_todays_
         assert training.get("cpu_kernels"), folder  # both were built on CPUs: which kernels is part of the recipe
         assert command == recipe_command(resolved, ran=ran_as(training)), folder
         assert f"`{command}`" in (folder / "README.md").read_text(), folder
+
+
+def test_the_shipped_record_renders_its_card_and_one_with_the_removed_training_keys_still_reads(tmp_path):
+    """The card is `write_card` of the record, byte for byte; a record written before `data.freeze_projector` and
+    `data.teacher_weight` were removed (its training facts carry them) still reads and renders the same card."""
+    from degusta_learn.pretrain.export import BASE_META, PERCEPTION, write_card
+    from degusta_learn.vlm.record import read_record
+
+    meta = json.loads((BASE_DIR / BASE_META).read_text())
+    (tmp_path / PERCEPTION).write_text((BASE_DIR / PERCEPTION).read_text())
+    card = (BASE_DIR / "README.md").read_text()
+    for extra in ({}, {"freeze_projector": False, "teacher_weight": 0.0}):
+        (tmp_path / BASE_META).write_text(json.dumps({**meta, "training": {**meta["training"], **extra}}))
+        assert read_record(tmp_path / BASE_META).training.items() >= extra.items()
+        assert write_card(tmp_path, name=BASE_DIR.name, path=BASE_DIR).read_text() == card

@@ -13,6 +13,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+import yaml
 
 from degusta_learn.cli import main
 from degusta_learn.errors import DegustaError
@@ -241,7 +242,7 @@ def test_quickstart_small_end_to_end_from_a_non_editable_install(wheel, tmp_path
                                        "tiny_base_zeroshot", "tiny_base_finetuned"}
     assert "LoRA fine-tuning the shipped tiny base VLM (tiny_vlm_base" in done.stdout  # never a random-weight stand-in
     ran = (work / "quickstart" / "configs" / "predict_hf_base_finetuned.yaml").read_text()
-    assert "model: tiny_vlm_base" in ran
+    assert yaml.safe_load(ran)["model"]["name"] == "tiny_vlm_base"
     assert not metrics["failed_methods"]
     text = (report / "report.md").read_text()
     for link in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text):

@@ -200,8 +200,8 @@ def test_skip_lets_the_model_name_an_object_again_and_the_reader_drops_that_item
     from degusta_learn.config import from_dict
     from degusta_learn.prompting.backends.hf import HFConfig
 
-    with pytest.raises(DegustaError, match="'backend.stop_on_repeat' is now 'on_repeat"):  # the key before
-        from_dict(HFConfig, {"name": "hf", "model": "m", "stop_on_repeat": True}, "predict.yaml", "backend.")
+    with pytest.raises(DegustaError, match="'backend.stop_on_repeat' is now 'decoding.on_repeat"):  # the key before
+        from_dict(HFConfig, {"name": "hf", "stop_on_repeat": True}, "predict.yaml", "backend.")
 
 
 def test_answers_that_stop_on_a_repeat_keep_the_items_before_it(tiny, one_torch_thread, monkeypatch):

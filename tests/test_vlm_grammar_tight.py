@@ -114,39 +114,3 @@ def test_random_walks_with_the_tight_grammar_always_end_in_a_parseable_answer():
             assert len(it.cells) <= g.max_cells_of[it.type]
             idx = [G8.cells.index(c) for c in it.cells]
             assert idx == sorted(set(idx))
-
-
-def test_a_fixed_length_closes_the_list_at_that_many_distinct_objects_and_not_before():
-    cat = default_catalog()
-    cup, fork, plate = (cat.of_type(t)[0].id for t in ("cup", "fork", "plate"))
-    g = AnswerGrammar("grid", cat, G8, length=2)
-    one = g.feed(g.start(), "[" + item("cup", cup, ["A1"]))
-    assert g.step(one, "]") is None and g.step(one, ",") is not None  # one object: the list must go on
-    assert g.step(one, "]", closing=True) is not None  # unless the token budget closes it
-    two = g.feed(one, ", " + item("fork", fork, ["B2"]))
-    assert g.step(two, ",") is None and g.is_complete(g.step(two, "]"))  # two: it must close
-    # with repeats allowed (decoding's skip), an object named again is not counted: the reader drops it
-    r = g.allowing_repeats()
-    again = r.feed(r.start(), "[" + item("cup", cup, ["A1"]) + ", " + item("cup", cup, ["C3"]))
-    assert r.step(again, "]") is None and r.step(again, ",") is not None
-    three = r.feed(again, ", " + item("plate", plate, ["D4"]))
-    assert r.is_complete(r.step(three, "]")) and r.step(three, ",") is None
-    assert AnswerGrammar("grid", cat, G8).step(one, "]") is not None  # no length: close any time
-    with pytest.raises(Exception, match="length: expected an integer >= 1"):
-        AnswerGrammar("grid", cat, G8, length=0)
-
-
-@pytest.mark.parametrize("length", [1, 3, 6])
-def test_random_walks_with_a_fixed_length_end_parseable_with_that_many_objects(length):
-    cat = default_catalog()
-    g = AnswerGrammar("grid", cat, G8, length=length)
-    alphabet = sorted(set("[]{}',: \n.0123456789_abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"))
-    rng = random.Random(length)
-    for _ in range(10):
-        state, text = g.start(), ""
-        while not g.is_complete(state):
-            options = [c for c in alphabet if g.step(state, c) is not None]
-            assert options, text
-            c = rng.choice(options)
-            state, text = g.step(state, c), text + c
-        assert len(parse_answer(text, "grid", cat, G8)) == length

@@ -58,6 +58,9 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", prefix:
     if renamed:  # an old spelling: say the one key every config kind now uses for the concept
         raise DegustaError(f"{where}: '{prefix}{renamed[0]}' is now '{cls.RENAMED[renamed[0]]}' "
                            "(one spelling per concept across config kinds: docs/configs.md)")
+    removed = [k for k in unknown if isinstance(k, str) and k in getattr(cls, "REMOVED", {})]
+    if removed:  # an option taken out: say what it was and why, not merely "unknown key"
+        raise DegustaError(f"{where}: {prefix}{removed[0]}: removed ({cls.REMOVED[removed[0]]})")
     if unknown:
         name = unknown[0] if isinstance(unknown[0], str) and len(unknown[0]) <= 60 else show_value(unknown[0])
         raise DegustaError(
@@ -121,11 +124,11 @@ _BOOL_HINT = (" (YAML reads an unquoted true or false as a boolean: write the wo
               "e.g. --set \"key='true'\")")
 
 PATH_KEYS = ("dataset", "out", "episodes", "predictions", "checkpoint", "run_dir", "export", "cache", "ledger",
-             "styles", "adapter", "path", "config", "model.name", "backend.model")
+             "styles", "adapter", "path", "config", "model.name")
 """The keys that hold a file or folder path in every config kind (one spelling per concept, docs/configs.md): a key
 whose last part (or, dotted, whose end) is one of these has `~` / `~user` expanded and is checked by
-`files.paths.check_path`, with one line naming the key and the path. `model.name` and `backend.model` take a hub id or a
-folder: the check refuses only what could be neither. tests/test_hardening_paths2.py lists every string key of every
+`files.paths.check_path`, with one line naming the key and the path. `model.name` takes a hub id, a folder or an API
+model id: the check refuses only what could be none of them. tests/test_hardening_paths2.py lists every string key of every
 config kind, so a new path key cannot be left out silently."""
 
 

@@ -40,7 +40,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -145,9 +145,11 @@ class CompareConfig:
     """Bootstrap resamples of the intervals (more: tighter estimates of the interval, slower; 1 .. 1,000,000)."""
     qualitative: int = bounded(3, 0, MAX_QUALITATIVE)
     """Random episodes drawn side by side (plus the best and worst episode of the top-ranked method; 0 .. 100)."""
-    image_size: int = bounded(256, MIN_IMAGE_SIZE, MAX_IMAGE_SIZE)
-    """Pixel size of each qualitative panel (64 .. 4096)."""
+    render_size: int = bounded(256, MIN_IMAGE_SIZE, MAX_IMAGE_SIZE)
+    """Pixel size the qualitative panels' scenes are rendered at (64 .. 4096)."""
     title: str = "Comparison report"
+
+    RENAMED: ClassVar[dict[str, str]] = {"image_size": "render_size"}
 
     def __post_init__(self):
         if not self.methods:

@@ -146,8 +146,9 @@ def card_text(cfg, adapter: bool, selection: dict | None, metrics: dict | None) 
         lines += ["from transformers import AutoModelForImageTextToText, AutoProcessor",
                   f'model = AutoModelForImageTextToText.from_pretrained("{here}")',
                   f'processor = AutoProcessor.from_pretrained("{here}")']
-    backend = (f"{{name: hf, model: {base}, adapter: {here}}}" if adapter else f"{{name: hf, model: {here}}}")
-    lines += ["```", "", f"With degusta_learn, a predict config's {md_code('backend: ' + backend)} prompts it exactly as it was "
+    model = (f"{{name: {base}, adapter: {here}}}" if adapter else f"{{name: {here}}}")
+    lines += ["```", "", f"With degusta_learn, a predict config's {md_code('backend: {name: hf}')} and "
+              f"{md_code('model: ' + model)} prompt it exactly as it was "
               "trained (`degusta_finetune.json` in this folder records the prompt layout, the image size and the "
               "participants it saw, and predicting on those is refused).", "",
               "## Publish", "", "```bash", f"hf upload YOUR_NAME/{cfg.trainer.run_name} {here}", "```", "",

@@ -11,9 +11,9 @@ from degusta_learn.finetune.lora import LoraConfig
 from degusta_learn.names import CONTEXT_LENGTHS
 from degusta_learn.optim import OptimConfig
 from degusta_learn.render.grid import Grid
-from degusta_learn.task.aggregate import ANCHORED, Aggregation
 from degusta_learn.training import TrainerConfig
 from degusta_learn.vlm.prompt_options import COMPOSE, GROUPS, PromptOptions
+from degusta_learn.vlm.settings import ON_REPEAT_RENAMED, DecodingSettings, ModelSettings
 
 
 @dataclass
@@ -42,28 +42,19 @@ HALF_TRUE_PRECISIONS = ("bf16-true", "16-true")
 
 
 @dataclass
-class ModelConfig:
-    """The `model:` section: which VLM, its dtype and image budget."""
+class ModelConfig(ModelSettings):
+    """The `model:` section of fine-tuning: the shared one (`vlm.settings.ModelSettings`: name, dtype, image_size)
+    plus how it trains. Full fine-tuning needs fp32 weights (the optimizer's master weights): bfloat16 / float16
+    with lora.mode full are refused (train them with trainer.precision bf16-mixed); dtype auto is then float32."""
 
-    name: str = "HuggingFaceTB/SmolVLM-256M-Instruct"
-    """Hub id (must already be in the local HF cache: nothing is downloaded) or a saved model folder."""
     build_tiny: str | None = None
     """idefics3 or qwen2vl: build a random-weight tiny model at `name` if that folder is missing (CPU smoke runs)."""
-    dtype: Literal["auto", "float32", "bfloat16", "float16"] = "auto"
-    """Weights' dtype: auto (LoRA: bf16 on a bf16 GPU, else fp32; full: fp32), float32, bfloat16, float16.
-    Full fine-tuning needs fp32 weights (they are the optimizer's master weights): train them with
-    trainer.precision bf16-mixed; bfloat16 / float16 with lora.mode full are refused."""
-    image_size: int | None = bounded(None, 16, 4096)
-    """Pixels per image side the model sees (Idefics3: one tile; Qwen2-VL: image_size^2 px). null: model default."""
     gradient_checkpointing: bool = False
     """Recompute activations in backward (less memory, ~30% slower); input grads are enabled for LoRA."""
     cache_tower: bool = True
     """While the vision tower is frozen (LoRA without vision_targets), compute its features once per distinct
     picture (the object sheet, the empty tables and a person's arrangements recur): same numbers, ~30% less
     time a step on a CPU (`finetune.tower_cache`). Off by itself when the tower trains."""
-
-    def __post_init__(self):
-        check_choices(self, "model")
 
 
 @dataclass
@@ -72,8 +63,9 @@ class DataConfig:
 
     contexts: list[int] = field(default_factory=lambda: list(CONTEXT_LENGTHS))
     """Context lengths of the training episodes (all trials of every train participant, per length)."""
-    val_context: int = 4
-    """Context length of the validation episodes (val participants)."""
+    val_contexts: list[int] = field(default_factory=lambda: [4])
+    """Context lengths of the validation episodes (val participants; `data.val_episodes` drawn from all of them)."""
+    RENAMED: ClassVar[dict[str, str]] = {"val_context": "data.val_contexts (a list, e.g. [4])"}
     val_episodes: int = bounded(16, 0, 100_000)
     """Validation episodes generated per validation (0: no validation)."""
     max_train_episodes: int | None = bounded(None, 1, 10_000_000)
@@ -111,8 +103,10 @@ class DataConfig:
         if bad or not self.contexts:
             raise DegustaError(f"data.contexts: expected a non-empty list drawn from {list(CONTEXT_LENGTHS)}, got "
                                f"{self.contexts}")
-        if self.val_context not in CONTEXT_LENGTHS:
-            raise DegustaError(f"data.val_context: expected one of {list(CONTEXT_LENGTHS)}, got {self.val_context}")
+        bad = [k for k in self.val_contexts if k not in CONTEXT_LENGTHS]
+        if bad or not self.val_contexts or len(set(self.val_contexts)) < len(self.val_contexts):
+            raise DegustaError(f"data.val_contexts: expected a non-empty list of distinct lengths drawn from "
+                               f"{list(CONTEXT_LENGTHS)}, got {self.val_contexts}")
         bad = [g for g in self.include if g not in GROUPS] + [g for g in self.compose if g not in COMPOSE]
         if bad:
             raise DegustaError(f"data.include / data.compose: unknown group {bad[0]!r}")
@@ -127,48 +121,19 @@ class DataConfig:
 
 @dataclass
 class EvalConfig:
-    """The `eval:` section: how validation generates."""
+    """The `eval:` section: what only validation has (how it generates is the `decoding:` section)."""
 
-    constrained: bool = True
-    """Constrain validation answers to the answer grammar (parse rate 100% by construction)."""
-    report_unconstrained: bool = False
-    """Also generate unconstrained and log val/parse_rate_unconstrained (twice the validation time)."""
-    on_repeat: Literal["skip", "stop", "next", "substitute"] = "skip"
-    """Constrained: what an item naming an object the answer already placed does (as the hf backend's
-    `backend.on_repeat`, so validation scores what predict writes): skip, stop, next or substitute."""
-    RENAMED: ClassVar[dict[str, str]] = {"stop_on_repeat": "on_repeat (skip, stop, next or substitute; true was stop)"}
-    max_new_tokens: int = bounded(384, 1, 32_768)
-    """Most new tokens per generated answer."""
     batch_size: int | None = bounded(None, 1, 4096)
     """Validation episodes answered by one `generate` call (left-padded; n > 1 makes it batch_size x n rows);
     null: data.batch_size. Greedy answers are those of one-by-one generation (tests/test_finetune_validation.py)."""
-    n: int = bounded(1, 1, 64)
-    """Answers per validation episode: 1 = one answer, as before; > 1 = n sampled answers aggregated exactly as
-    `degusta predict` aggregates them (task/aggregate.py), the aggregate then scored (n x the generation)."""
-    aggregation: Aggregation = "steps"
-    """n > 1: how the answers become one plan, as predict's `aggregation` (steps: the paper's; votes: the objects
-    most answers name, as many as the median answer's length; greedy_votes: one more, greedy answer lengthened
-    by the samples' votes, a second `generate` call; greedy_votes_pooled: the same objects, each placed from every
-    answer naming it; greedy_votes_context: that at the median count of the example's context tables)."""
-    temperature: float | None = bounded(None, 0.0, 10.0)
-    """Sampling temperature of the validation answers; null: 0 (greedy) at n = 1, 1.0 (predict's default) at
-    n > 1. Samples are seeded by `seed` and the episode's position, so a validation is reproducible."""
     log_images: int = bounded(2, 0, 1000)
     """Validation episodes drawn as ground truth vs prediction (the first ones) at every validation: PNGs in
     <run>/val_images/step_<N>/ and images in TensorBoard (rank 0); 0: none."""
 
-    @property
-    def sampling_temperature(self) -> float:
-        """The temperature validation generates at (`temperature`, or its default for `n`)."""
-        if self.temperature is not None:
-            return float(self.temperature)
-        return 1.0 if self.n > 1 else 0.0
-
-    def __post_init__(self):
-        check_choices(self, "eval")  # on_repeat, aggregation: built in Python too (the loader checks YAML)
-        if self.aggregation in ANCHORED and self.sampling_temperature == 0:
-            raise DegustaError(f"eval.aggregation: {self.aggregation} lengthens a greedy answer by sampled ones; set "
-                               "eval.n > 1 (or eval.temperature > 0)")
+    RENAMED: ClassVar[dict[str, str]] = {
+        **{k: f"decoding.{k}" for k in ("constrained", "report_unconstrained", "on_repeat", "max_new_tokens", "n",
+                                        "aggregation", "temperature")},
+        "stop_on_repeat": ON_REPEAT_RENAMED}
 
 
 @dataclass
@@ -194,21 +159,31 @@ class FinetuneConfig:
     seed: int = seed_field()
     """Seed of the participant split (use the same `seed` in predict configs) and of the validation subset;
     `trainer.seed` seeds the training itself (adapter init, example order, resampled contexts)."""
-    model: ModelConfig = field(default_factory=ModelConfig)
-    """Which VLM."""
+    model: ModelConfig = field(default_factory=lambda: ModelConfig(name="HuggingFaceTB/SmolVLM-256M-Instruct"))
+    """Which VLM (no adapter: fine-tuning trains its own on `model.name`)."""
     lora: LoraConfig = field(default_factory=LoraConfig)
     """Adapters (or full fine-tuning)."""
     data: DataConfig = field(default_factory=DataConfig)
     """Examples and batching."""
     optim: FinetuneOptimConfig = field(default_factory=lambda: FinetuneOptimConfig(lr=2e-4))
     """Optimizer and schedule."""
+    decoding: DecodingSettings = field(default_factory=DecodingSettings)
+    """How validation generates, as `degusta predict` does with the hf backend (constrained null: true;
+    max_new_tokens auto: sized from the dataset with the model's tokenizer, `vlm.generate.answer_token_budget`)."""
     eval: EvalConfig = field(default_factory=EvalConfig)
-    """Validation generation."""
+    """What only validation has: episodes per generate call, episodes drawn as pictures (`log_images`)."""
     trainer: FinetuneTrainerConfig = field(default_factory=FinetuneTrainerConfig)
     """Lightning settings and the run folder; best.ckpt and best_adapter/ are selected on `trainer.monitor`."""
 
     def __post_init__(self):
         check_choices(self, '')
+        if not self.model.name.strip():
+            raise DegustaError("model.name: required: a hub id (e.g. HuggingFaceTB/SmolVLM-256M-Instruct), a model "
+                               "folder or a shipped model (tiny_vlm_base)")
+        if self.model.adapter is not None:
+            raise DegustaError("model.adapter: fine-tuning trains a new adapter on model.name and starts from none; "
+                               "to go on from a fine-tuned model, give its merged folder (lora.merge) as model.name")
+        self.decoding = self.decoding.resolved(local=True)  # validation decodes with the local model
         if self.lora.mode == "full" and self.model.dtype in HALF_DTYPES:
             raise DegustaError(f"model.dtype: {self.model.dtype} with lora.mode full would train the weights "
                                f"themselves in {self.model.dtype} (no fp32 master weights: small updates round "
@@ -217,9 +192,6 @@ class FinetuneConfig:
             raise DegustaError(f"trainer.precision: {self.trainer.precision} casts the trained weights to half "
                                f"precision (no fp32 master weights: small updates round away); use bf16-mixed "
                                f"(LoRA keeps its adapters in fp32 on a bf16 base; full keeps fp32 weights)")
-        if self.eval.aggregation == "greedy_votes_context" and self.data.val_context == 0:
-            raise DegustaError("eval.aggregation: greedy_votes_context takes its length from the context tables; "
-                               "data.val_context 0 has none (use greedy_votes_pooled)")
 
     @property
     def weights_dtype(self) -> str:

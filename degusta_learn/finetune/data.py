@@ -179,7 +179,8 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
     train = [e for k in cfg.data.contexts for e in make_episodes(ds, k, "train", cfg.seed)]
     if cfg.data.max_train_episodes is not None and len(train) > cfg.data.max_train_episodes:
         train = random.Random(cfg.seed).sample(train, cfg.data.max_train_episodes)
-    val = make_episodes(ds, cfg.data.val_context, "val", cfg.seed) if cfg.data.val_episodes else []
+    val = [e for k in cfg.data.val_contexts for e in make_episodes(ds, k, "val", cfg.seed)] if cfg.data.val_episodes \
+        else []
     if len(val) > cfg.data.val_episodes:
         val = random.Random(cfg.seed + 1).sample(val, cfg.data.val_episodes)
     # training contexts drawn afresh each epoch, seeded by the training seed (the split stays the split seed's)

@@ -3,8 +3,10 @@
 `FinetuneModule` trains with `lm_loss` (answer tokens only) and validates by GENERATING answers for
 held-out (val) participants: each answer is parsed, aggregated and scored like any method's prediction.
 The answers of `eval.batch_size` episodes come from one left-padded `generate` call
-(`vlm.generate.generate_batch`); with `eval.n > 1` each episode gets n answers sampled at `eval.temperature`,
-aggregated by predict's own `prompting.aggregate.combine` (`eval.aggregation`), and the aggregate is scored. The
+(`vlm.generate.generate_batch`), decoded as the `decoding:` section says (the keys `degusta predict` reads); with
+`decoding.n > 1` each episode gets n answers sampled at `decoding.temperature`, aggregated by predict's own
+`task.aggregate.combine` (`decoding.aggregation`), and the aggregate is scored. `decoding.max_new_tokens: auto` is
+predict's hf budget: the dataset's longest answer in the model's tokenizer + 10% + the grammar's closing reserve. The
 first `eval.log_images` episodes are drawn as ground truth vs prediction (rank 0: <run>/val_images/step_<N>/ and
 TensorBoard image summaries). Logged per validation (besides val/loss):
 
@@ -15,8 +17,8 @@ TensorBoard image summaries). Logged per validation (besides val/loss):
   <= 2 objects of >= 3: the "degenerate" test of `compare`);
 - per field, over matched pairs (`field_scores.py`): val/id_accuracy, and for grid methods val/cell_iou and
   val/direction_accuracy;
-- val/parse_rate (constrained when eval.constrained) and, with eval.report_unconstrained,
-  val/parse_rate_unconstrained.
+- val/parse_rate (constrained when decoding.constrained) and, with decoding.report_unconstrained,
+  val/parse_rate_unconstrained (every answer decoded a second time without the grammar).
 
 Under DDP each rank generates for its share of the val episodes; the per-episode scores are gathered and
 each episode counted once (`training.gather_unique_rows`), so the metrics equal a single-process
@@ -55,7 +57,7 @@ def monitor_keys(cfg) -> set[str]:
                  "val/few_matched", "val/id_accuracy"}
         if answer_kind(cfg.method) == "grid":
             keys |= {"val/cell_iou", "val/direction_accuracy"}
-        if cfg.eval.report_unconstrained and cfg.eval.constrained:
+        if cfg.decoding.report_unconstrained and cfg.decoding.constrained:
             keys.add("val/parse_rate_unconstrained")
     return keys
 
@@ -104,7 +106,7 @@ class FinetuneModule(L.LightningModule):
 
     def _answer(self, examples) -> None:
         """Generate and score the validation answers of `examples` (one `generate` call a decoding mode)."""
-        e = self.cfg.eval
+        e = self.cfg.decoding
         indices = [self._val_index(ex) for ex in examples]
         rows = self.score_batch(examples, e.constrained, indices)
         free = self.score_batch(examples, False, indices) if e.report_unconstrained and e.constrained else None
@@ -125,31 +127,47 @@ class FinetuneModule(L.LightningModule):
         return self.score_batch([ex], constrained)[0]
 
     def score_batch(self, examples, constrained: bool, indices: list[int] | None = None) -> list[dict]:
-        """Generate `eval.n` answers per example (one `generate` call, left-padded), aggregate each example's
+        """Generate `decoding.n` answers per example (one `generate` call, left-padded), aggregate each example's
         answers as predict does and score the aggregate: one VAL_COLUMNS row (+ `text`, the first answer, and
         `placements`) per example. `indices` (positions in the validation set) seed the samples."""
         from degusta_learn.task.aggregate import ANCHORED
         from degusta_learn.task.grammar import AnswerGrammar
         from degusta_learn.vlm.generate import generate_batch
 
-        e = self.cfg.eval
+        e = self.cfg.decoding
         indices = list(range(len(examples))) if indices is None else indices
         grammar = AnswerGrammar(self.kind, self.ds.catalog, self.grid) if constrained else None
         prompts, seeds = [ex.prompt for ex in examples], [self.cfg.seed + i for i in indices]
+        budget = self.max_new_tokens()
         answers = generate_batch(self.model, self.processor, prompts, n=e.n, temperature=e.sampling_temperature,
-                                 max_new_tokens=e.max_new_tokens, constrained=constrained, grammar=grammar,
+                                 max_new_tokens=budget, constrained=constrained, grammar=grammar,
                                  seeds=seeds, on_repeat=e.on_repeat)
         greedy = [None] * len(examples)
         if e.aggregation in ANCHORED:  # + the greedy answer, as predict asks for it
             greedy = [c[0].text for c in generate_batch(self.model, self.processor, prompts, n=1, temperature=0.0,
-                                                        max_new_tokens=e.max_new_tokens, constrained=constrained,
+                                                        max_new_tokens=budget, constrained=constrained,
                                                         grammar=grammar, seeds=seeds, on_repeat=e.on_repeat)]
         return [self.score_answers(ex, [c.text for c in completions], anchor)
                 for ex, completions, anchor in zip(examples, answers, greedy)]
 
+    def max_new_tokens(self) -> int:
+        """`decoding.max_new_tokens`, or for auto the hf backend's budget (`vlm.generate.answer_token_budget`: the
+        dataset's longest answer in this tokenizer + 10%, + the grammar's closing reserve when constrained), once."""
+        e = self.cfg.decoding
+        if e.max_new_tokens != "auto":
+            return e.max_new_tokens
+        if getattr(self, "_budget", None) is None:
+            from degusta_learn.task.grammar import AnswerGrammar
+            from degusta_learn.vlm.generate import answer_token_budget
+
+            grammar = AnswerGrammar(self.kind, self.ds.catalog, self.grid) if e.constrained else None
+            self._budget = answer_token_budget(self.processor.tokenizer, self.ds, self.kind, self.grid,
+                                               grammar=grammar)["max_new_tokens"]
+        return self._budget
+
     def score_answers(self, ex, texts: list[str], greedy: str | None = None) -> dict:
         """Score the answers `texts` to `ex`: parsed, aggregated (`prompting.aggregate.combine`, predict's own
-        function, by `eval.aggregation`) and the aggregate scored against the ground truth. `parsed` is the share
+        function, by `decoding.aggregation`) and the aggregate scored against the ground truth. `parsed` is the share
         of answers that parse. The per-field counts compare the answer's items (n = 1) or, for n > 1, the aggregated
         plan written as an answer (`answer_items`: the cells its placements cover)."""
         from degusta_learn.finetune.field_scores import field_counts
@@ -165,10 +183,7 @@ class FinetuneModule(L.LightningModule):
             except AnswerParseError:
                 parsed.append(None)
         anchor = parsed.pop() if greedy is not None else None
-        counts = (self.ds.object_counts(ex.participant, ex.context)
-                  if self.cfg.eval.aggregation == "greedy_votes_context" else None)  # the person's own counts
-        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.eval.aggregation, anchor=anchor,
-                                   context_counts=counts)
+        placements, diag = combine(parsed, self.kind, self.grid, self.cfg.decoding.aggregation, anchor=anchor)
         gt = self.ds.arrangement(ex.participant, ex.target)
         s = score_prediction(self.ds.catalog, gt, placements, diag["failed"])
         items = parsed[0] if len(parsed) == 1 else (
@@ -190,7 +205,7 @@ class FinetuneModule(L.LightningModule):
         table = torch.tensor([[float(r[c]) for c in VAL_COLUMNS] for r in local], dtype=torch.float64)
         # every rank's examples, each once (DDP pads the ranks' shares with repeats): a single-process result
         stats = validation_stats(gather_unique_rows(self, table), self.kind,
-                                 self.cfg.eval.report_unconstrained and self.cfg.eval.constrained)
+                                 self.cfg.decoding.report_unconstrained and self.cfg.decoding.constrained)
         bar = {k: v for k, v in stats.items() if k in PROGRESS_BAR}
         # identical on every rank: the sync_dist mean is the value
         self.log_dict(bar, prog_bar=True, sync_dist=True)
@@ -219,7 +234,7 @@ class FinetuneModule(L.LightningModule):
             episode, participant, target = row["episode"]
             score = "failed" if row["failed"] else (f"set {row['set_rmsd']:.3f}, RMSD {row['rmsd']:.3f}, "
                                                     f"acc {row['acc']:.2f}")
-            label = f"step {self.global_step}" + (f", n = {self.cfg.eval.n}" if self.cfg.eval.n > 1 else "")
+            label = f"step {self.global_step}" + (f", n = {self.cfg.decoding.n}" if self.cfg.decoding.n > 1 else "")
             path = render_side_by_side(self.ds, self._image_renderer, participant, target,
                                        {f"prediction ({label})": (row["placements"], score)},
                                        folder / f"{int(row['index']):03d}_{_file_safe(episode)}.png")

@@ -6,20 +6,28 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from degusta_learn.config import bounded, seed_field
 from degusta_learn.errors import DegustaError
-from degusta_learn.finetune.config import EvalConfig
 from degusta_learn.optim import OptimConfig
 from degusta_learn.pretrain.tasks import TaskMix
 from degusta_learn.render.grid import Grid
 from degusta_learn.training import TrainerConfig
 from degusta_learn.vlm.random_models.fastvlm import OUTPUT_STRIDE, BaseArchitecture
+from degusta_learn.vlm.settings import DecodingSettings
 
 
 @dataclass
 class PretrainData:
     """The `data:` section: the perception examples and their batching."""
+
+    REMOVED: ClassVar[dict[str, str]] = {
+        "teacher_weight": "the oracle teacher's pull on the tower's tokens; no shipped recipe used it",
+        "freeze_projector": "keeping the projector fixed after the vision stage; no shipped recipe used it",
+        "retrieval_list_items": "attention supervision of list items' types and ids; no shipped recipe used it",
+    }
+    """Keys taken out, with why (a config that still sets one is refused with that line)."""
 
     grid: Grid = field(default_factory=Grid)
     """The labelled grid drawn over the scenes (the base learns this grid)."""
@@ -46,22 +54,15 @@ class PretrainData:
     projector, the dense head and the decoder go on training. Unfrozen, the decoder's answer loss reaches the tower
     through its tokens and erases the object ids the stage taught it. Without a
     vision stage (`tower_steps: 0`) there is nothing to keep and it has no effect."""
-    freeze_projector: bool = False
-    """With `freeze_tower`, keep the projector as the stage left it too: the decoder then learns to read the image
-    tokens the stage made, which tell object ids apart (trainable, the projector loses them once the decoder's answer
-    loss reaches it). The teacher's pull,
-    which trains the projector only after a stage, is then off (the decoder still sees the teacher's tokens)."""
     teacher_steps: int = bounded(0, 0, 10_000_000)
     """Oracle teacher: the decoder sees perfect image tokens (sums of the embeddings of each cell's content)
     instead of the tower's with a probability falling from 1 to 0 over these steps; 0: off."""
     teacher_hold: int = bounded(0, 0, 10_000_000)
     """Steps at teacher probability 1 before it starts to fall over `teacher_steps` (e.g. a curriculum's)."""
-    teacher_weight: float = 1.0
-    """Weight of the pull of the tower's image tokens towards those oracle sums (while teacher_steps > 0)."""
     readout_weight: float = 0.0
     """Weight of the tied readout (`dense.TiedReadout`), after any vision stage: each labelled image token, read
     through the decoder's own output layer, should name its cell's content (cell, types, ids, directions), so the
-    projector writes ids where the decoder's copy can name them; 0: off. Needs a trainable projector."""
+    projector writes ids where the decoder's copy can name them; 0: off."""
     retrieval_weight: float = 1.0
     """Weight of the attention supervision (`retrieval.py`): one decoder head is told to look, at every answer
     cell and direction, at the image tokens of the object the answer names; 0: off."""
@@ -69,9 +70,6 @@ class PretrainData:
     """The decoder layer of the supervised head (the previous-token head is in layer 0)."""
     retrieval_head: int = bounded(2, 0, 1024)
     """The supervised head of that layer (by default not in the previous-token head's key group)."""
-    retrieval_list_items: bool = False
-    """Also supervise, in *list* answers, the positions predicting each item's type and id (they come from the
-    image there, not from the question): the scan over a scene's objects that a list needs."""
     curriculum_steps: int = bounded(0, 0, 10_000_000)
     """The first steps draw their questions from `curriculum_mix` instead of `mix` (0: no curriculum)."""
     curriculum_mix: TaskMix = field(default_factory=lambda: TaskMix(
@@ -89,16 +87,10 @@ class PretrainData:
         if self.val_examples < 0 or self.num_workers < 0 or self.dense_weight < 0 or self.retrieval_weight < 0:
             raise DegustaError("data.val_examples / data.num_workers / data.dense_weight / data.retrieval_weight: "
                                "expected >= 0")
-        if self.teacher_steps < 0 or self.teacher_weight < 0 or self.teacher_hold < 0:
-            raise DegustaError("data.teacher_steps / data.teacher_hold / data.teacher_weight: expected >= 0")
+        if self.teacher_steps < 0 or self.teacher_hold < 0:
+            raise DegustaError("data.teacher_steps / data.teacher_hold: expected >= 0")
         if self.readout_weight < 0:
             raise DegustaError(f"data.readout_weight: expected >= 0, got {self.readout_weight}")
-        if self.readout_weight > 0 and self.freeze_projector:
-            raise DegustaError("data.readout_weight: the tied readout trains the projector, which "
-                               "data.freeze_projector: true keeps fixed; set one of them off")
-        if self.freeze_projector and not self.freeze_tower:
-            raise DegustaError("data.freeze_projector: a frozen projector over a tower that goes on training would read "
-                               "tokens the stage never made; set data.freeze_tower: true as well")
         if self.tower_steps > 0 and self.dense_weight <= 0:
             raise DegustaError("data.tower_steps: the vision stage trains the tower on the dense loss, which "
                                "data.dense_weight: 0 turns off; set data.dense_weight > 0 or data.tower_steps: 0")
@@ -120,8 +112,11 @@ class PretrainConfig:
     """Examples and batching."""
     optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1.5e-3, weight_decay=0.01, warmup_steps=100))
     """Optimizer and schedule."""
-    eval: EvalConfig = field(default_factory=lambda: EvalConfig(report_unconstrained=False, max_new_tokens=240))
-    """How validation generates (constrained to the answer grammar by default)."""
+    decoding: DecodingSettings = field(default_factory=lambda: DecodingSettings(max_new_tokens=240,
+                                                                                report_unconstrained=False))
+    """How validation generates: one greedy answer a question, read from constrained (null: true), on_repeat and
+    max_new_tokens (a number: its questions are perception lists, not a dataset's answers to size auto from)."""
+    RENAMED: ClassVar[dict[str, str]] = {"eval": "decoding"}
     channels_last: bool = False
     """Train the vision tower's convolutions in the channels-last memory layout: the same model up to rounding, its
     forward and backward faster on a CPU (the vision stage 0.51 s a step where 0.65 without it; benchmarks/RESULTS.md,
@@ -144,6 +139,11 @@ class PretrainConfig:
 
     def __post_init__(self):
         from degusta_learn.files.paths import refuse_shipped
+
+        self.decoding = self.decoding.resolved(local=True)
+        if self.decoding.max_new_tokens == "auto" or self.decoding.n != 1 or self.decoding.sampling_temperature:
+            raise DegustaError("decoding: pretraining's validation answers each question once, greedily, within a "
+                               "number of tokens: set decoding.max_new_tokens to a number, n 1 and temperature null")
 
         if not self.export_target[1]:
             refuse_shipped(self.export, "export")

@@ -136,7 +136,8 @@ class OracleTokens:
     embeddings of that cell id and of the type, id and direction of every object covering it, e.g.
     E["D5"] + E["fork"] + E["48"] + E["S"]: exactly the tokens an answer copies from it. Early in pretraining
     the decoder sees these sums instead of the vision tower's tokens (`OracleTeacher`), so it learns to
-    retrieve and copy while the tower learns to produce them. Runs in DataLoader workers.
+    retrieve and copy before it must read the tower's; the tied readout (`TiedReadout`) trains the projector's
+    tokens towards what these sums name. Runs in DataLoader workers.
     """
 
     def __init__(self, catalog, tokenizer, grid, key: str = "teacher_steps"):
@@ -168,8 +169,6 @@ class OracleTeacher:
 
     `probability(step)` is 1 until step `hold`, then falls linearly to 0 over `steps` more; per labelled
     image a coin decides.
-    `pull(tokens)` is the relative squared distance of the projector's tokens to the (detached) oracle sums,
-    the loss that teaches the vision tower to produce what the decoder learned to read.
     """
 
     def __init__(self, embeddings: nn.Embedding, steps: int, hold: int = 0):
@@ -201,13 +200,6 @@ class OracleTeacher:
         out = tokens.clone()
         out[swap] = self.oracle()[swap[keep]].to(tokens.dtype)
         return out
-
-    def pull(self, tokens: torch.Tensor | None) -> torch.Tensor | None:
-        if tokens is None or self.ids is None or self.keep is None or tokens.shape[0] != self.keep.numel():
-            return None
-        target = self.oracle().detach().float()
-        got = tokens[self.keep.to(tokens.device)].float()
-        return F.mse_loss(got, target) / target.pow(2).mean().clamp(min=1e-12)
 
 
 class TiedReadout:

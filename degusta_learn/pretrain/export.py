@@ -120,10 +120,9 @@ def export_base(model, processor, cfg, out: Path, run_dir: Path, steps: int | No
                       "batch_size": cfg.data.batch_size, "examples": steps * cfg.data.batch_size if steps else None,
                       "lr": cfg.optim.lr, "seed": cfg.seed, "mix": dataclasses.asdict(cfg.data.mix),
                       "tower_steps": cfg.data.tower_steps, "freeze_tower": cfg.data.freeze_tower,
-                      "freeze_projector": cfg.data.freeze_projector, "dense_weight": cfg.data.dense_weight,
-                      "readout_weight": cfg.data.readout_weight, "retrieval_weight": cfg.data.retrieval_weight,
-                      "teacher_steps": cfg.data.teacher_steps, "teacher_hold": cfg.data.teacher_hold,
-                      "teacher_weight": cfg.data.teacher_weight, "curriculum_steps": cfg.data.curriculum_steps,
+                      "dense_weight": cfg.data.dense_weight, "readout_weight": cfg.data.readout_weight,
+                      "retrieval_weight": cfg.data.retrieval_weight, "teacher_steps": cfg.data.teacher_steps,
+                      "teacher_hold": cfg.data.teacher_hold, "curriculum_steps": cfg.data.curriculum_steps,
                       "curriculum_mix": dataclasses.asdict(cfg.data.curriculum_mix)},
             validation_curve=curve))
         if (run_dir / "config.yaml").is_file():
@@ -159,9 +158,7 @@ def _stages(t: dict) -> str:
     """Which weights trained when (the model card's words for data.tower_steps / data.freeze_tower)."""
     if not t.get("tower_steps"):
         return "all weights trained together"
-    after = ("the tower and projector frozen, the decoder trained" if t.get("freeze_projector")
-             else "the tower frozen, the projector and the decoder trained" if t.get("freeze_tower")
-             else "all weights")
+    after = "the tower frozen, the projector and the decoder trained" if t.get("freeze_tower") else "all weights"
     return (f"first a vision stage of {t['tower_steps']} steps (the vision tower and projector alone, on a dense "
             f"per-token loss: what covers each grid cell, its id and direction), then {after}{_aids(t)}")
 
@@ -172,8 +169,7 @@ def _aids(t: dict) -> str:
     if t.get("teacher_steps"):
         aids.append(f"for the first {t.get('teacher_hold', 0) + t['teacher_steps']} steps after it the decoder saw "
                     "perfect image tokens (sums of the embeddings of each cell's content) with a probability "
-                    "falling from 1 to 0" + (f", the projector's tokens pulled towards them (weight "
-                                              f"{t['teacher_weight']})" if t.get("teacher_weight") else ""))
+                    "falling from 1 to 0")
     if t.get("readout_weight"):
         aids.append("the projector's tokens, read through the decoder's output layer, trained to name their cell's "
                     f"content (weight {t['readout_weight']})")
@@ -204,8 +200,8 @@ def _load_lines(name: str, path: Path) -> list[str]:
             "from transformers import AutoModelForImageTextToText, AutoProcessor",
             f"model = AutoModelForImageTextToText.from_pretrained({where})",
             f"processor = AutoProcessor.from_pretrained({where})", "```", "",
-            f"In a degusta_learn config: `model: {BASE_NAME if shipped else path.as_posix()}` (fine-tuning) or "
-            f"`backend: {{name: hf, model: {BASE_NAME if shipped else path.as_posix()}}}` (prompting); in Python, "
+            f"In a degusta_learn config: `model: {{name: {BASE_NAME if shipped else path.as_posix()}}}` (fine-tuning, "
+            f"and prompting with `backend: {{name: hf}}`); in Python, "
             f"`degusta_learn.vlm.load.load_vlm({BASE_NAME if shipped else path.as_posix()!r})`."
             + (" Publish it with `hf upload YOUR_NAME/" + name + f" {path.as_posix()}`." if not shipped else "")]
 

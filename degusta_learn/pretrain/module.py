@@ -1,20 +1,18 @@
 """The LightningModule of perception pretraining: `FinetuneModule`'s training, a perception validation.
 
-Training is `FinetuneModule`'s (answer-only next-token loss on every weight, its optimizer and schedule)
-plus, with `data.dense_weight > 0`, the dense auxiliary loss on the image tokens (`dense.py`), whose
-head is trained with the model and left out of the export, and, with `data.teacher_steps > 0`, the
-oracle teacher (`dense.OracleTeacher`): for the first steps the decoder mostly sees perfect image tokens
-(sums of the embeddings of what covers each cell) instead of the vision tower's, with a probability
-falling from 1 to 0 over `teacher_steps`, while `data.teacher_weight` pulls the tower's tokens towards
-those sums, with `data.readout_weight > 0` the tied readout (`dense.TiedReadout`: the image tokens read
-through the decoder's output layer should name their cell's content; logged as train/readout and, at
+Training is `FinetuneModule`'s (answer-only next-token loss on every weight, its optimizer and schedule) plus,
+with `data.dense_weight > 0`, the dense auxiliary loss on the image tokens (`dense.py`), whose head is trained
+with the model and left out of the export, and, with `data.teacher_steps > 0`, the oracle teacher
+(`dense.OracleTeacher`): for the first steps the decoder mostly sees perfect image tokens (sums of the
+embeddings of what covers each cell) instead of the vision tower's, with a probability falling from 1 to 0
+over `teacher_steps`, with `data.readout_weight > 0` the tied readout (`dense.TiedReadout`: the image tokens
+read through the decoder's output layer should name their cell's content; logged as train/readout and, at
 validation, val/token_type / val/token_id / val/token_direction), and, with `data.retrieval_weight > 0`, the
-attention supervision (`retrieval.py`): one decoder head is told where the object an answer names is among
-the image tokens. With `data.tower_steps > 0` a vision stage comes first: only the tower, its projector and
-the dense head train, on the dense loss alone, and the decoder's warmup and cosine schedule (and the teacher's
-hold) start after it; with `data.freeze_tower` the tower then stays as the stage left it, with
-`data.freeze_projector` its projector too. Validation always sees
-the tower's tokens and logs the dense head's readouts of them (val/tower_type, val/tower_id: the id among
+attention supervision (`retrieval.py`): one decoder head is told where the object an answer names is among the
+image tokens. With `data.tower_steps > 0` a vision stage comes first: only the tower, its projector and the
+dense head train, on the dense loss alone, and the decoder's warmup and cosine schedule (and the teacher's
+hold) start after it; with `data.freeze_tower` the tower then stays as the stage left it. Validation always
+sees the tower's tokens and logs the dense head's readouts of them (val/tower_type, val/tower_id: the id among
 its type's objects, val/tower_direction); the vision stage's validations answer no questions (val/perception
 is NaN there, which best.ckpt ranks last).
 Validation generates an answer to each held-out perception question — constrained to the answer grammar
@@ -38,7 +36,6 @@ def monitor_keys(cfg) -> set[str]:
     """Every metric PerceptionModule logs under a PretrainConfig `cfg` (what `trainer.monitor` may name)."""
     keys = {"train/loss"} | ({"train/dense"} if cfg.data.dense_weight > 0 else set())
     keys |= {"train/teacher_p"} if cfg.data.teacher_steps > 0 else set()
-    keys |= {"train/pull"} if cfg.data.teacher_steps > 0 and not _projector_frozen(cfg) else set()
     keys |= {"train/retrieval"} if cfg.data.retrieval_weight > 0 else set()
     keys |= {"train/readout"} if cfg.data.readout_weight > 0 else set()
     if cfg.data.val_examples > 0 and cfg.data.dense_weight > 0:
@@ -49,11 +46,6 @@ def monitor_keys(cfg) -> set[str]:
         keys |= {f"val/{k}" for k in ("loss", "object_f1", "cells_exact", "cells_exact_all", "cell_iou", "direction",
                                       "mark_id", "parse_rate", "perception")}
     return keys
-
-
-def _projector_frozen(cfg) -> bool:
-    """True when the projector stops training after a vision stage (`data.freeze_projector`)."""
-    return cfg.data.freeze_projector and cfg.data.tower_steps > 0  # PretrainData refuses it without freeze_tower
 
 
 class PerceptionModule(FinetuneModule):
@@ -92,7 +84,7 @@ class PerceptionModule(FinetuneModule):
             self.retrieval = RetrievalLoss(model, cfg.data.retrieval_layer, cfg.data.retrieval_head)
 
     def _capture(self, module, inputs, output):
-        if self._recomputing:  # `_pulled`'s own projector call: its tokens, never the teacher's
+        if self._recomputing:  # `_readout_tokens`'s own projector call: its tokens, never the teacher's
             return None
         self._tokens = output  # (n_images, tokens, hidden): the vision tower's image tokens
         self._features = inputs[0] if inputs else None  # the tower's output, the projector's input
@@ -129,30 +121,23 @@ class PerceptionModule(FinetuneModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def on_train_batch_start(self, batch, batch_idx) -> None:
-        """With `data.freeze_tower` (and `data.freeze_projector`), freeze the tower (and its projector) once the
-        vision stage is over (again after a resume)."""
+        """With `data.freeze_tower`, freeze the tower once the vision stage is over (again after a resume)."""
         if not (self.cfg.data.freeze_tower and self.tower_steps > 0) or self.vision_stage:
             return
-        from degusta_learn.pretrain.dense import projector_of
+        tower = unwrap(self.model).model.vision_tower
+        if any(p.requires_grad for p in tower.parameters()):
+            tower.requires_grad_(False)
+        freeze_batch_norms(tower)  # BatchNorms keep the stage's statistics (Lightning re-enters train mode)
 
-        hf = unwrap(self.model)
-        parts = [hf.model.vision_tower] + ([projector_of(hf)] if _projector_frozen(self.cfg) else [])
-        for part in parts:
-            if any(p.requires_grad for p in part.parameters()):
-                part.requires_grad_(False)
-            freeze_batch_norms(part)  # BatchNorms keep the stage's statistics (Lightning re-enters train mode)
-
-    def _pulled(self):
-        """The image tokens the teacher's pull and the tied readout act on. After a vision stage they train the
-        projector only, on the tower's detached output: the tower has learned to see, and the pull (whose targets,
-        the decoder's embedding sums, have another scale) would otherwise write over it (measured: the tower's id
-        readout fell from 0.57 to 0.06 within 50 steps)."""
+    def _readout_tokens(self):
+        """The image tokens the tied readout acts on. After a vision stage it trains the projector only, on the
+        tower's detached output: the tower has learned to see, and a loss on its tokens would write over that."""
         if self.tower_steps <= 0 or self._features is None:
             return self._tokens
         from degusta_learn.pretrain.dense import projector_of
 
-        self._recomputing = True  # the forward hook would swap in the teacher's oracle sums (until November 26 it
-        try:                      # did: while the teacher held, the pull was 0 and trained nothing)
+        self._recomputing = True  # else the forward hook would swap in the teacher's oracle sums
+        try:
             return projector_of(unwrap(self.model))(self._features.detach())
         finally:
             self._recomputing = False
@@ -181,15 +166,8 @@ class PerceptionModule(FinetuneModule):
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         if self.teacher is not None:
             self.log("train/teacher_p", self.teacher.probability(self.global_step), batch_size=bs)
-        wanted = (self.teacher is not None or self.readout is not None) and not _projector_frozen(self.cfg)
-        pulled = self._pulled() if wanted else None  # the projector's tokens the pull and the readout train
-        if self.teacher is not None and pulled is not None:
-            pull = self.teacher.pull(pulled)
-            if pull is not None:
-                self.log("train/pull", pull, batch_size=bs)
-                loss = loss + self.cfg.data.teacher_weight * pull
-        if self.readout is not None and pulled is not None:
-            read = self.readout.loss(pulled, oracle_ids, keep)
+        if self.readout is not None:
+            read = self.readout.loss(self._readout_tokens(), oracle_ids, keep)  # the projector's tokens it trains
             if read is not None:
                 self.log("train/readout", read, batch_size=bs)
                 loss = loss + self.cfg.data.readout_weight * read
@@ -217,10 +195,10 @@ class PerceptionModule(FinetuneModule):
 
         located = ex.meta["task"] != "gomo"
         return generate_answers(self.model, self.processor, ex.prompt, n=1, temperature=0.0,
-                                max_new_tokens=self.cfg.eval.max_new_tokens if located else GOMO_TOKENS,
-                                constrained=located and self.cfg.eval.constrained,
+                                max_new_tokens=self.cfg.decoding.max_new_tokens if located else GOMO_TOKENS,
+                                constrained=located and self.cfg.decoding.constrained,
                                 grammar=self.grammar() if located else None,
-                                on_repeat=self.cfg.eval.on_repeat)[0].text
+                                on_repeat=self.cfg.decoding.on_repeat)[0].text
 
     def validation_step(self, batch, batch_idx):
         from degusta_learn.pretrain.score import score_answer

@@ -9,8 +9,7 @@ The labels say exactly where to look, so one head is told:
 
 - `RetrievalTargets` (collate side, in DataLoader workers): for every supervised answer position whose next
   token is a grid cell or a direction, the positions of the image tokens (of the image the question asks
-  about) whose grid cell the object named by the latest supervised id covers; optionally (`list_items`) also,
-  in *list* answers, the positions predicting an item's type and id (the item's object, read ahead). Image token k of a labelled
+  about) whose grid cell the object named by the latest supervised id covers. Image token k of a labelled
   image stands for grid cell k (`tasks.PerceptionExamples.cell_labels`), as for the dense loss.
 - `RetrievalLoss` (module side): a forward pre-hook captures the input of decoder layer `layer`'s attention;
   `loss()` recomputes head `head`'s causal attention scores (RoPE included) at those positions and returns
@@ -39,9 +38,7 @@ KEYS = ("retrieval_rows", "retrieval_queries", "retrieval_targets")
 class RetrievalTargets:
     """Builds the attention targets of a collated batch (see the module docstring)."""
 
-    def __init__(self, catalog, tokenizer, image_token_id: int, tokens_per_image: int, grid, list_items: bool = False):
-        """`list_items`: in *list* answers, whose types and ids come from the image too, also the positions
-        that predict an item's type and id point at that item's object (read ahead to the item's id)."""
+    def __init__(self, catalog, tokenizer, image_token_id: int, tokens_per_image: int, grid):
         from degusta_learn.pretrain.dense import single_token
         from degusta_learn.render.grid import DIRECTIONS
 
@@ -50,9 +47,7 @@ class RetrievalTargets:
 
         self.object_of = {one(str(o.id)): o.id for o in catalog}
         self.copied = {one(c) for c in grid.cells} | {one(d) for d in DIRECTIONS}
-        self.named = set(self.object_of) | {one(t) for t in catalog.types}
         self.image_token_id, self.tokens_per_image = image_token_id, tokens_per_image
-        self.list_items = list_items
 
     def __call__(self, examples, input_ids: torch.Tensor, labels: torch.Tensor) -> dict:
         """{"retrieval_rows": (n,), "retrieval_queries": (n,), "retrieval_targets": (n, T) bool}: query n is
@@ -64,20 +59,13 @@ class RetrievalTargets:
             if cells is None:
                 continue
             lab = labels[b].tolist()
-            upcoming = self._upcoming(lab) if self.list_items and ex.meta.get("task") == "list" else None
             current = None
             for t in range(width - 1):
                 if lab[t] in self.object_of:  # a supervised id: the answer item's object
                     current = self.object_of[lab[t]]
-                if lab[t + 1] in self.copied:
-                    target = current
-                elif upcoming is not None and lab[t + 1] in self.named:
-                    target = upcoming[t + 1]  # the item's type or id, read from its object
-                else:
-                    continue
-                if target in cells:
+                if lab[t + 1] in self.copied and current in cells:
                     row = torch.zeros(width, dtype=torch.bool)
-                    row[cells[target]] = True
+                    row[cells[current]] = True
                     rows.append(b)
                     queries.append(t)
                     targets.append(row)
@@ -87,15 +75,6 @@ class RetrievalTargets:
                     "retrieval_targets": torch.zeros(0, width, dtype=torch.bool)}
         return {"retrieval_rows": torch.tensor(rows), "retrieval_queries": torch.tensor(queries),
                 "retrieval_targets": torch.stack(targets)}
-
-    def _upcoming(self, lab: list[int]) -> list[int | None]:
-        """Per position, the object of the first supervised id at or after it."""
-        out: list[int | None] = [None] * len(lab)
-        nxt = None
-        for t in range(len(lab) - 1, -1, -1):
-            nxt = self.object_of.get(lab[t], nxt)
-            out[t] = nxt
-        return out
 
     def _object_positions(self, ex, input_ids: torch.Tensor) -> dict[int, list[int]] | None:
         """Object id -> sequence positions of the image tokens it covers in the asked image; None when the

@@ -190,8 +190,8 @@ def build_recipe(cfg: PretrainConfig, run_dir: Path, module_cls=None) -> RecipeP
     labels = DenseLabels(catalog, side)
     module = (module_cls or PerceptionModule)(model, processor, cfg, catalog, grid, labels.n_labels, side)
     oracle = OracleTokens(catalog, processor.tokenizer, grid, oracle_key(d)) if needs_oracle(d) else None
-    retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side, grid,
-                                 d.retrieval_list_items) if d.retrieval_weight > 0 else None
+    retrieval = RetrievalTargets(catalog, processor.tokenizer, model.config.image_token_id, side * side,
+                                 grid) if d.retrieval_weight > 0 else None
     dense = d.dense_weight > 0 or oracle is not None or retrieval is not None
     return RecipeParts(processor, module, train, val,
                        DenseCollate(collator, labels, oracle, retrieval) if dense else collator, collator)

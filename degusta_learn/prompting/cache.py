@@ -1,7 +1,8 @@
 """A persistent response cache (SQLite), so an interrupted zero-shot run resumes without paying twice.
 
-Each sampled answer is stored under a key hashing everything that determines it: the backend settings
-that change answers (name, model, base_url, image detail, adapter, ...), the prompt (text parts in order
+Each sampled answer is stored under a key hashing everything that determines it: the backend, model and
+decoding settings that change answers (name, model.name, base_url, image detail, model.adapter,
+decoding.constrained, ...), the prompt (text parts in order
 and the SHA-256 of every encoded image), the sampling parameters (temperature, max_tokens, seed), the
 JSON schema of a structured-output run (`backend.structured_output`) and the sample index; a local model or adapter folder also contributes a fingerprint of its files, so a
 retrained adapter at the same path does not hit stale answers. The answers of one request are committed
@@ -15,7 +16,7 @@ user's file, another program's database, a folder) is refused, never overwritten
 
 Example:
     cache = ResponseCache("runs/x/responses_cache.sqlite")
-    keys = sample_keys(prompt, backend_cfg, temperature=1.0, max_tokens=1024, seed=0, n=5)
+    keys = sample_keys(prompt, backend_cfg, model, decoding, temperature=1.0, max_tokens=1024, seed=0, n=5)
     hits = cache.get_many(keys)            # {key: Completion}
     cache.put(keys[3], completion, episode="p001/t2/k4")
 """
@@ -33,6 +34,7 @@ from pathlib import Path
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import BackendConfig, Completion, redact
 from degusta_learn.task.prompt import ImagePart, Prompt
+from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 APPLICATION_ID = 0x44475343  # "DGSC": PRAGMA application_id of a degusta response cache
 _SCHEMA = ("CREATE TABLE IF NOT EXISTS responses (key TEXT PRIMARY KEY, episode TEXT, text TEXT NOT NULL, "
@@ -68,18 +70,20 @@ def folder_fingerprint(name: str | None) -> str | None:
     return h.hexdigest()
 
 
-def sample_keys(prompt: Prompt, backend: BackendConfig, temperature: float, max_tokens: int,
-                seed: int | None, n: int, schema: dict | None = None) -> list[str]:
+def sample_keys(prompt: Prompt, backend: BackendConfig, model: ModelSettings, decoding: DecodingSettings,
+                temperature: float, max_tokens: int, seed: int | None, n: int, schema: dict | None = None) -> list[str]:
     """One cache key per sample index 0..n-1 (growing n keeps the first answers).
 
     `schema`: the JSON schema a structured-output request sends (`backend.structured_output`); its
     SHA-256 joins the key, so free-text and structured answers never mix and a changed schema (catalog,
     grid) asks again. Free-text keys are what they always were (caches made before stay valid).
     """
-    fields = backend.answer_fields()  # the backend keys that change answers (timeout, api_key_env, device do not)
+    # the backend, model and decoding keys that change answers (timeout, api_key_env, device do not), as they were
+    # keyed when they were all backend keys: the same settings key the same answers
+    fields = backend.answer_fields(model, decoding)
     base = {"backend": fields, "prompt": prompt_digest(prompt),
             "temperature": temperature, "max_tokens": max_tokens, "seed": seed,
-            "model_files": folder_fingerprint(backend.model), "adapter_files": folder_fingerprint(fields["adapter"])}
+            "model_files": folder_fingerprint(model.name), "adapter_files": folder_fingerprint(fields["adapter"])}
     if schema is not None:
         base["structured_output"] = hashlib.sha256(json.dumps(schema, sort_keys=True).encode()).hexdigest()
     head = json.dumps(base, sort_keys=True)

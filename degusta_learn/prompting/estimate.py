@@ -46,7 +46,7 @@ def estimate_run(run, episodes: list) -> dict[str, Any]:
         missing = len(keys) - len(hits)
         tokens = run.input_tokens(prompt)
         per_prompt.append(tokens)
-        sampled = sum(k not in hits for k in keys[:run.cfg.n])  # greedy_votes' greedy answer: a request of its own
+        sampled = sum(k not in hits for k in keys[:run.cfg.decoding.n])  # greedy_votes' greedy answer: a request of its own
         requests = missing if run.per_sample else int(sampled > 0) + (missing - sampled)
         est["episodes_to_run"] += int(missing > 0)
         est["samples"] += missing
@@ -70,7 +70,8 @@ def print_estimate(cfg, est: dict[str, Any]) -> None:
     pr = est["price_usd_per_1m"]
     priced = f"at USD {pr[0]:g} / {pr[1]:g} per 1M input / output tokens" if pr else \
         "(no price known for this model: set prices.<model> to estimate dollars)"
-    print(f"dry run: {cfg.method} with {cfg.backend.name} {cfg.backend.model}, {est['episodes']} episodes x n={cfg.n} "
+    print(f"dry run: {cfg.method} with {cfg.backend.name} {cfg.model.name}, {est['episodes']} episodes x "
+          f"n={cfg.decoding.n} "
           f"({est['episodes_to_run']} still to run)")
     print(f"  requests: {est['requests']} for {est['samples']} samples ({est['cached']} samples already cached)")
     print(f"  estimated tokens: {est['input_tokens']:,} input ({est['input_tokens_per_request']:,} a request) + "

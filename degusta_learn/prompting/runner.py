@@ -31,6 +31,7 @@ server fault: its samples are counted failures of that episode, as unparseable a
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import queue
@@ -41,6 +42,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from tqdm import tqdm
 
@@ -63,10 +65,11 @@ from degusta_learn.prompting.costs import CHARS_PER_TOKEN, BudgetExceeded, Ledge
 from degusta_learn.prompting.estimate import estimate_run, output_tokens_per_sample, print_estimate
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Dataset, Episode, Prediction
-from degusta_learn.task.aggregate import ANCHORED, Aggregation, combine, decoding_diagnostics
+from degusta_learn.task.aggregate import ANCHORED, combine, decoding_diagnostics
 from degusta_learn.task.answer_format import answer_schema
 from degusta_learn.task.answers import MAX_CHARS, AnswerParseError, answer_kind, is_repeat, read_answer
 from degusta_learn.task.prompt import IMAGE_FORMATS, Prompt, build_prompt
+from degusta_learn.vlm.settings import API_MAX_NEW_TOKENS, DecodingSettings, ModelSettings, check_api_settings
 
 LEDGER_MARK = "degusta zero-shot ledger"
 """The `kind` of every ledger.json the runner writes: only such a file (or one with the keys of ledgers written
@@ -87,28 +90,25 @@ def is_degusta_ledger(path: Path) -> bool:
 
 @dataclass
 class ZeroShotConfig(PredictConfig):
-    """A zero-shot prompting run: the common predict keys plus backend, sampling and run control."""
+    """A zero-shot prompting run: the common predict keys plus which model answers (`model:`), how it decodes
+    (`decoding:`), how it is reached (`backend:`) and run control."""
 
     backend: BackendConfig = field(default_factory=backend_config)
-    """Which VLM answers: `name` picks the backend, whose own keys the section then takes (docs/prompting.md)."""
-    n: int = 5
-    """Sampled answers per episode, aggregated (the paper: 5)."""
-    aggregation: Aggregation = "steps"
-    """How the n answers become one plan (task/aggregate.py): steps, the paper's (per step the mode type and
-    id, the mode length); votes, the objects most answers name, as many as the median answer's length;
-    greedy_votes, one more answer at temperature 0 (the greedy one) lengthened to the samples' median length by
-    their most named objects it lacks; greedy_votes_pooled, the same objects, the greedy answer's each placed from
-    it and every sample naming it; greedy_votes_context, that at the median count of the episode's context tables.
-    Applied to the stored answers, so changing it re-uses the response cache (the greedy_votes kinds ask only for
-    the greedy answers a cache lacks)."""
-    temperature: float = 1.0
-    """Sampling temperature (the APIs' default 1.0; 0 makes the n samples near-identical)."""
+    """How the model is reached: `name` picks the backend, whose own keys the section then takes (docs/prompting.md)."""
+    model: ModelSettings = field(default_factory=ModelSettings)
+    """Which model answers (`name`: an API model id such as gpt-4o, or for hf a hub id / folder; empty: the backend's
+    default, openai's gpt-4o); adapter, dtype and image_size are the hf backend's (a local model)."""
+    decoding: DecodingSettings = field(default_factory=DecodingSettings)
+    """n, aggregation, temperature, max_new_tokens (auto: hf sizes it from the dataset, an API backend takes
+    API_MAX_NEW_TOKENS); constrained (null: true for hf, false for an API backend), on_repeat and report_unconstrained
+    steer the hf backend's decoding. `aggregation` is applied to the stored answers, so changing it re-uses the
+    response cache (greedy_votes_pooled asks only for the greedy answers a cache lacks)."""
     concurrency: int = 4
     """Requests in flight at once."""
     cache: str | None = None
     """SQLite response cache; unset: responses_cache.sqlite beside `out`; "off": no cache."""
-    image_size: int = 448
-    """Side of the rendered images in pixels (more pixels: more image tokens)."""
+    render_size: int = 448
+    """Side in pixels the lifted images are rendered at (more pixels: more image tokens); a fine-tuned model's own."""
     image_format: str = "jpeg"
     """jpeg or png (the names in the prompt follow: final_state_1.jpg / .png)."""
     grid: Grid = field(default_factory=Grid)
@@ -128,16 +128,18 @@ class ZeroShotConfig(PredictConfig):
     est_output_tokens: int | None = None
     """Output tokens a sample is assumed to take in estimates (unset: from the dataset's arrangements)."""
 
+    RENAMED: ClassVar[dict[str, str]] = {"image_size": "render_size", "n": "decoding.n",
+                                         "temperature": "decoding.temperature", "aggregation": "decoding.aggregation"}
+
     def __post_init__(self):
         super().__post_init__()
-        checks = [("n", self.n >= 1, ">= 1"), ("concurrency", self.concurrency >= 1, ">= 1"),
-                  ("temperature", self.temperature >= 0, ">= 0"), ("image_size", self.image_size >= 64, ">= 64"),
-                  ("temperature", self.temperature > 0 or self.aggregation not in ANCHORED,
-                   f"> 0 with aggregation {self.aggregation} (its n answers are sampled, the greedy one is asked "
-                   "apart)"),
-                  ("aggregation", self.aggregation != "greedy_votes_context" or self.context != 0,
-                   "one that needs no context tables with context 0 (greedy_votes_context takes its length from "
-                   "them)"),
+        cls = backend_class(self.backend.name)
+        if not cls.local_decoding:  # a service or a recorded file answers: the local model's keys are refused
+            check_api_settings(self.model, self.decoding, self.backend.name)
+        self.decoding = self.decoding.resolved(local=cls.local_decoding)
+        if not self.model.name:
+            self.model = dataclasses.replace(self.model, name=cls.default_model)  # "": check_run says it is required
+        checks = [("concurrency", self.concurrency >= 1, ">= 1"), ("render_size", self.render_size >= 64, ">= 64"),
                   ("max_retries", self.max_retries >= 0, ">= 0"), ("backoff", self.backoff >= 0, ">= 0"),
                   ("backoff_max", self.backoff_max >= 0, ">= 0"),
                   ("budget_usd", self.budget_usd is None or self.budget_usd >= 0, ">= 0"),
@@ -287,12 +289,16 @@ class ZeroShotRun:
         self.cfg, self.ds = cfg, ds
         self.kind = answer_kind(cfg.method)
         self.grid = Grid(cfg.grid.rows, cfg.grid.cols)
-        self.renderer = Renderer.for_dataset(ds, size=cfg.image_size)
+        self.renderer = Renderer.for_dataset(ds, size=cfg.render_size)
         self.out = Path(cfg.out)
         self.cache_path = None if cfg.cache == "off" else Path(cfg.cache or self.out.parent / "responses_cache.sqlite")
         # What the backend is, asked of its class (nothing is built, no model loaded, until `run`).
         self.backend_cls = backend_class(cfg.backend.name)
-        self.price = self.backend_cls.price(cfg.backend, cfg.prices)  # None: a local backend, not priced
+        self.price = self.backend_cls.price(cfg.backend, cfg.model, cfg.prices)  # None: a local backend, not priced
+        # decoding.max_new_tokens: a number, or auto: an API backend's API_MAX_NEW_TOKENS now, hf's budget once the
+        # model is loaded (`run`; a dry run keys its cache look-ups with "auto")
+        asked = cfg.decoding.max_new_tokens
+        self.max_tokens = asked if asked != "auto" or self.backend_cls.local_decoding else API_MAX_NEW_TOKENS
         self.per_sample = self.backend_cls.per_sample
         self.cacheable = self.backend_cls.cacheable
         self.est_out = cfg.est_output_tokens or output_tokens_per_sample(ds, self.kind, self.grid)
@@ -319,15 +325,17 @@ class ZeroShotRun:
 
     def input_tokens(self, prompt: Prompt) -> int:
         """Estimated input tokens of one request carrying `prompt` (with the answer schema it sends)."""
-        return self.backend_cls.input_tokens(prompt, self.cfg.backend) + self.schema_tokens
+        return self.backend_cls.input_tokens(prompt, self.cfg.backend, self.cfg.model) + self.schema_tokens
 
     def prompt(self, ep: Episode) -> tuple[Prompt, list[str]]:
         c = self.cfg
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
                               structured=c.backend.structured_output)
-        keys = sample_keys(prompt, c.backend, c.temperature, c.backend.max_tokens, c.seed, c.n, schema=self.schema)
-        if c.aggregation in ANCHORED:  # + the greedy answer: the key a greedy run (n 1, temperature 0) gives it
-            keys += sample_keys(prompt, c.backend, 0.0, c.backend.max_tokens, c.seed, 1, schema=self.schema)
+        d = c.decoding
+        keys = sample_keys(prompt, c.backend, c.model, d, d.sampling_temperature, self.max_tokens, c.seed, d.n,
+                           schema=self.schema)
+        if d.aggregation in ANCHORED:  # + the greedy answer: the key a greedy run (n 1, temperature 0) gives it
+            keys += sample_keys(prompt, c.backend, c.model, d, 0.0, self.max_tokens, c.seed, 1, schema=self.schema)
         return prompt, keys
 
     # ------------------------------------------------------------------------- requests
@@ -353,8 +361,9 @@ class ZeroShotRun:
             self.ledger.reserve(est_usd)
             try:
                 try:
-                    got = _sanitize(self.backend.complete(prompt, k, c.temperature if temperature is None else
-                                                          temperature, c.backend.max_tokens, seed))
+                    got = _sanitize(self.backend.complete(prompt, k, c.decoding.sampling_temperature
+                                                          if temperature is None else temperature, self.max_tokens,
+                                                          seed))
                 except (BackendError, DegustaError, KeyboardInterrupt):
                     raise
                 except Exception as e:  # a client library's own exception, a local model's OOM: stop cleanly
@@ -398,7 +407,7 @@ class ZeroShotRun:
             self.ledger.count("empty_answers", len(got) - len(answered) if got else 1)
         if fault and not answered:
             what = "no choices" if not got else "an empty answer"
-            raise BackendError(f"{self.cfg.backend.name}: {self.cfg.backend.model} answered 200 with {what} (no "
+            raise BackendError(f"{self.cfg.backend.name}: {self.cfg.model.name} answered 200 with {what} (no "
                                "choices / content / candidates, a null message or blank text): a server fault",
                                retryable=True)
         return answered
@@ -412,9 +421,10 @@ class ZeroShotRun:
         c = self.cfg
         samples: list[Completion | None] = [hits.get(k) for k in keys]
         reasons: dict[int, str] = {}
-        self.fetch(ep, prompt, keys, samples, reasons, list(range(c.n)), c.temperature)
-        if len(keys) > c.n:  # greedy_votes: the greedy answer, asked apart at temperature 0
-            self.fetch(ep, prompt, keys, samples, reasons, [c.n], 0.0)
+        n = c.decoding.n
+        self.fetch(ep, prompt, keys, samples, reasons, list(range(n)), c.decoding.sampling_temperature)
+        if len(keys) > n:  # greedy_votes_pooled: the greedy answer, asked apart at temperature 0
+            self.fetch(ep, prompt, keys, samples, reasons, [n], 0.0)
         return self.predict(ep, samples, reasons, cached=len(hits))
 
     def fetch(self, ep: Episode, prompt: Prompt, keys: list[str], samples: list, reasons: dict[int, str],
@@ -475,14 +485,11 @@ class ZeroShotRun:
             parsed.append(answer.items)
             n_items += answer.n_read
             item_errors += [{"sample": i, "reason": r} for r in answer.item_errors]
-        n = self.cfg.n
+        n = self.cfg.decoding.n
         anchor = parsed[n] if len(parsed) > n else None
-        counts = (self.ds.object_counts(ep.participant, ep.context)
-                  if self.cfg.aggregation == "greedy_votes_context" else None)  # the person's own counts
-        placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.aggregation, anchor=anchor,
-                                  context_counts=counts)
+        placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.decoding.aggregation, anchor=anchor)
         kept = [cut_answer(s.text) if s else None for s in samples]  # bounded, whatever a cache holds
-        diag = {"backend": self.cfg.backend.name, "model": self.cfg.backend.model, "n": n,
+        diag = {"backend": self.cfg.backend.name, "model": self.cfg.model.name, "n": n,
                 "cached": cached, "responses": kept[:n],
                 **({"greedy_response": kept[n]} if len(samples) > n else {}),
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
@@ -490,7 +497,7 @@ class ZeroShotRun:
                 "n_item_repeats": sum(is_repeat(e["reason"]) for e in item_errors), **agg}
         decoding = decoding_diagnostics(samples, self.kind, self.ds.catalog, self.grid)  # local models only
         if decoding:
-            diag["decoding"] = {"max_new_tokens": self.cfg.backend.max_tokens, **decoding}
+            diag["decoding"] = {"max_new_tokens": self.max_tokens, **decoding}
         return fit_line(Prediction(episode=ep.id, participant=ep.participant, target=ep.target,
                                    method=self.cfg.method, placements=placements, failed=agg["failed"],
                                    diagnostics=redact_json(diag)))
@@ -500,10 +507,10 @@ class ZeroShotRun:
     def run(self, episodes: list[Episode]) -> list[Prediction]:
         c = self.cfg
         # before the model loads: hf refuses train/test leakage and a render size other than the trained one
-        backend_class(c.backend.name).check_run(c.backend, self.ds, episodes, c.image_size)
-        self.backend = make_backend(c.backend, self.grid, self.ds.catalog)
-        if c.backend.max_tokens == "auto":  # hf: what the dataset's answers take with the model's tokenizer
-            c.backend.max_tokens = self.backend.token_budget(self.ds, c.method)["max_new_tokens"]
+        backend_class(c.backend.name).check_run(c.backend, c.model, self.ds, episodes, c.render_size)
+        self.backend = make_backend(c.backend, c.model, c.decoding, self.grid, self.ds.catalog)
+        if self.max_tokens == "auto":  # hf: what the dataset's answers take with the model's tokenizer
+            self.max_tokens = self.backend.token_budget(self.ds, c.method)["max_new_tokens"]
         self.cache = ResponseCache(self.cache_path) if self.cache_path and self.cacheable else None
         self.ledger = Ledger(self.price, c.budget_usd)
         results: dict[str, Prediction] = {}
@@ -514,7 +521,7 @@ class ZeroShotRun:
         reused = [0, 0]  # tokens of cached answers (paid in an earlier run)
         start = time.time()
         todo = iter(episodes)
-        bar = tqdm(total=len(episodes), desc=f"{c.method} {c.backend.model}", unit="ep", disable=None)
+        bar = tqdm(total=len(episodes), desc=f"{c.method} {c.model.name}", unit="ep", disable=None)
         pool = _Workers(c.concurrency, "degusta-zeroshot")
         pending: dict = {}
         interrupted = False
@@ -609,10 +616,10 @@ class ZeroShotRun:
         diags = [p.diagnostics for p in results.values()]
         atomic_write_json(self.ledger_path, redact_json({
             "kind": LEDGER_MARK, "method": c.method, "out": str(self.out), "backend": c.backend.name,
-            "model": c.backend.model,
+            "model": c.model.name,
             "base_url": getattr(c.backend, "base_url", None),  # null: a backend that calls no server (hf, replay)
             "structured_output": c.backend.structured_output,
-            "n": c.n, "aggregation": c.aggregation, "episodes": len(episodes), "episodes_done": len(results),
+            "n": c.decoding.n, "aggregation": c.decoding.aggregation, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),
             "episodes_unanswered": len(unanswered), "stopped": stopped,
             "items_read": sum(d.get("n_items", 0) for d in diags),
@@ -629,7 +636,7 @@ def run_zeroshot(cfg: ZeroShotConfig, ds: Dataset, episodes: list[Episode]) -> l
     """The MethodSpec entry point; returns None for a dry run (run_predict then writes nothing)."""
     run = ZeroShotRun(cfg, ds)
     if cfg.dry_run:  # a dry run refuses what the real run would refuse (leakage, render size) before estimating
-        backend_class(cfg.backend.name).check_run(cfg.backend, ds, episodes, cfg.image_size)
+        backend_class(cfg.backend.name).check_run(cfg.backend, cfg.model, ds, episodes, cfg.render_size)
         print_estimate(cfg, estimate_run(run, episodes))
         return None
     from degusta_learn.files.locks import hold

@@ -1,5 +1,6 @@
 """Combine n sampled answers into one task plan: the paper's per-step aggregation (DESIGN.md section 4, the paper's
-appendix A; `aggregation: steps`, predict's default) or object votes (`aggregation: votes`).
+appendix A; `aggregation: steps`, predict's default) or the greedy answer lengthened by object votes
+(`aggregation: greedy_votes_pooled`, the shipped fine-tuned predict config's).
 
 The paper's, `aggregate`:
 - plan length = mode of the lengths of the parsed responses;
@@ -15,34 +16,22 @@ frequent unused id of that type at that step; if every candidate is used, the st
 object cannot be placed twice). Unparseable responses are `None`; if all are, the result is empty and
 `diagnostics["failed"]` is True (never an exception).
 
-Object votes, `aggregate_votes` (a small fine-tuned model names the same
-objects in different orders across its samples, so a step's mode mixes different objects):
+Greedy + votes, `anchored_votes` (`aggregation: greedy_votes_pooled`): the model's greedy answer (one more answer,
+at temperature 0) keeps its objects and is lengthened, never shortened, to the n samples' median length (rounded
+half to even) by the best-voted objects it lacks; every object is placed from every answer naming it (the greedy
+one and the samples, as above). For a model whose greedy lists end early but whose samples' lengths follow the
+person's count (a small fine-tuned model names the same objects in different orders across its samples, so a
+step's mode mixes different objects). An unparseable greedy answer falls back to object votes, `aggregate_votes`:
 
 - plan length = median of the lengths of the parsed responses (rounded half to even; 0 where most are empty);
 - objects = that many ids, ranked by how many responses name them (ties: the lower mean step, then the one seen
-  first), placed in the order of their mean step;
-- each object's position and rotation combine every response that names it, as above.
+  first), placed in the order of their mean step, each from every response that names it.
 
 An answer names an object at most once (`read_answer` drops an item naming one again), so a vote is one answer's.
 
-Greedy + votes, `anchored_votes` (`aggregation: greedy_votes`): the model's
-greedy answer (one more answer, at temperature 0) keeps its objects and places, and is lengthened, never shortened,
-to the n samples' median length by the best-voted objects it lacks (each placed from every sample naming it). For a
-model whose greedy lists end early but whose samples' lengths follow the person's count. An unparseable greedy
-answer falls back to votes. `greedy_votes_pooled`: the same objects, each of the greedy
-answer's placed from the greedy answer and every sample naming it (the mean of their cells), as votes places its
-objects: chosen over `greedy_votes` on the validation participants (`benchmarks/choose_decoding.py`).
-`greedy_votes_context`: `greedy_votes_pooled` at the length the person's own context
-tables give, the median of their object counts (rounded half to even), instead of the samples' median: the greedy
-answer is lengthened by votes to it or, if longer, keeps its best-voted objects (ties: the earlier step) in its own
-order. An episode without context tables takes the samples' median (`diagnostics["length_from"]` says which).
-
 Example:
     placements, diag = aggregate([parse_answer(t, "grid", catalog, grid) for t in texts], "grid", grid)
-    placements, diag = combine(parsed, "grid", grid, how="votes")
-    placements, diag = combine(sampled, "grid", grid, how="greedy_votes", anchor=greedy_items)
-    placements, diag = combine(sampled, "grid", grid, how="greedy_votes_context", anchor=greedy_items,
-                               context_counts=[5, 6, 5, 4])  # the context tables' object counts: length 5
+    placements, diag = combine(sampled, "grid", grid, how="greedy_votes_pooled", anchor=greedy_items)
 """
 
 from __future__ import annotations
@@ -64,37 +53,25 @@ def _ranked(values: list) -> list:
     return sorted(counts, key=lambda v: (-counts[v], first[v]))
 
 
-Aggregation = Literal["steps", "votes", "greedy_votes", "greedy_votes_pooled", "greedy_votes_context"]
-"""How n answers become one plan: the paper's per-step modes, object votes, or the greedy answer lengthened by
-votes, its objects kept where it puts them or placed from every answer naming them, or that at the context tables'
-median count (module docstring); the configs' `aggregation` / `eval.aggregation` type."""
+Aggregation = Literal["steps", "greedy_votes_pooled"]
+"""How n answers become one plan: the paper's per-step modes, or the greedy answer lengthened by votes, every object
+placed from every answer naming it (module docstring); the configs' `decoding.aggregation` type."""
 AGGREGATIONS = get_args(Aggregation)
-ANCHORED = ("greedy_votes", "greedy_votes_pooled", "greedy_votes_context")
+ANCHORED = ("greedy_votes_pooled",)
 """The aggregations that ask for one more answer, at temperature 0 (the anchor)."""
 
 
 def combine(responses: list[list[AnswerItem] | None], kind: str, grid=None, how: str = "steps",
-            anchor: list[AnswerItem] | None = None, context_counts: list[int] | None = None
-            ) -> tuple[list[Placement], dict[str, Any]]:
-    """`aggregate` (how="steps"), `aggregate_votes` (how="votes") or `anchored_votes` (how="greedy_votes",
-    "greedy_votes_pooled" or "greedy_votes_context", with the greedy answer's items as `anchor`, None if it did not
-    parse; greedy_votes_context at the median of `context_counts`, the episode's context tables' object counts); the
-    diagnostics name the aggregation."""
+            anchor: list[AnswerItem] | None = None) -> tuple[list[Placement], dict[str, Any]]:
+    """`aggregate` (how="steps") or `anchored_votes` (how="greedy_votes_pooled", with the greedy answer's items as
+    `anchor`, None if it did not parse); the diagnostics name the aggregation."""
     if how not in AGGREGATIONS:
         raise DegustaError(f"aggregation: expected one of {list(AGGREGATIONS)}, got {how!r}")
     if how in ANCHORED:
-        length = context_length(context_counts) if how == "greedy_votes_context" else None
-        placements, diag = anchored_votes(anchor, responses, kind, grid, pooled=how != "greedy_votes", length=length)
-        if how == "greedy_votes_context":
-            diag["length_from"] = "samples" if length is None else "context"
+        placements, diag = anchored_votes(anchor, responses, kind, grid)
     else:
-        placements, diag = (aggregate if how == "steps" else aggregate_votes)(responses, kind, grid)
+        placements, diag = aggregate(responses, kind, grid)
     return placements, {"aggregation": how, **diag}
-
-
-def context_length(counts: list[int] | None) -> int | None:
-    """The median of the context tables' object counts, rounded half to even (None without context tables)."""
-    return int(round(float(np.median(counts)))) if counts else None
 
 
 def _start(responses: list, kind: str, grid) -> tuple:
@@ -122,9 +99,9 @@ def placed(oid: int, members: list[AnswerItem], kind: str, grid) -> Placement:
     return Placement(object=int(oid), x=float(x), y=float(y), rotation=float(rot) % 360.0)
 
 
-def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=None, length: int | None = None
+def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=None
                     ) -> tuple[list[Placement], dict[str, Any]]:
-    """Object votes (module docstring): the median length's (or `length`'s) most-named objects, in their mean order.
+    """Object votes (module docstring): the median length's most-named objects, in their mean order.
 
     Returns (placements in plan order, diagnostics with n_responses, n_parsed, failed, length, length_agreement and
     per chosen object its votes and mean step, `objects`).
@@ -133,7 +110,7 @@ def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=No
     if not parsed:
         return [], diag
     lengths = [len(r) for r in parsed]
-    length = median_length(parsed) if length is None else length
+    length = median_length(parsed)
     diag["length"] = length
     diag["length_agreement"] = round(lengths.count(length) / len(parsed), 4)
     named, mean_step, ranked = object_votes(parsed)
@@ -142,33 +119,26 @@ def aggregate_votes(responses: list[list[AnswerItem] | None], kind: str, grid=No
     return [placed(oid, named[oid], kind, grid) for oid in chosen], diag
 
 
-def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerItem] | None], kind: str, grid=None,
-                   pooled: bool = False, length: int | None = None) -> tuple[list[Placement], dict[str, Any]]:
-    """The greedy answer `anchor` lengthened by votes (module docstring); `aggregate_votes` when it is None.
-    `pooled`: each of the anchor's objects is placed from the anchor and every sample naming it (else: where the
-    anchor puts it). `length`: the plan's length (greedy_votes_context), the anchor cut to its best-voted objects
-    if longer; None: the samples' median, the anchor never cut.
+def anchored_votes(anchor: list[AnswerItem] | None, responses: list[list[AnswerItem] | None], kind: str, grid=None
+                   ) -> tuple[list[Placement], dict[str, Any]]:
+    """The greedy answer `anchor` lengthened by votes to the samples' median length, never cut (module docstring);
+    `aggregate_votes` when it is None. Each of the anchor's objects is placed from the anchor and every sample
+    naming it.
 
     Returns (the anchor's placements, then the added objects in order of their votes; diagnostics with n_responses,
-    n_parsed, failed, `anchor` (its length, or "unparsed"), length (the samples' median or `length`; the anchor's
-    without either) and per added object its votes and mean step, `added`; with `length`, the anchor's ids cut,
-    `dropped`).
+    n_parsed, failed, `anchor` (its length, or "unparsed"), length (the samples' median; the anchor's without
+    samples) and per added object its votes and mean step, `added`).
     """
     if anchor is None:
-        placements, diag = aggregate_votes(responses, kind, grid, length=length)
+        placements, diag = aggregate_votes(responses, kind, grid)
         return placements, {**diag, "anchor": "unparsed"}
     grid, parsed, diag = _start(responses, kind, grid)
     diag.update(failed=False, anchor=len(anchor))
-    named, mean_step, ranked = object_votes(parsed)
-    if length is not None:
-        keep = sorted(range(len(anchor)), key=lambda i: (-len(named.get(anchor[i].id, [])), i))[:length]
-        diag["dropped"] = [it.id for i, it in enumerate(anchor) if i not in keep]
-        anchor = [anchor[i] for i in sorted(keep)]
-    elif not parsed:
+    if not parsed:
         return [placed(it.id, [it], kind, grid) for it in anchor], {**diag, "length": len(anchor), "added": []}
-    else:
-        length = median_length(parsed)
-    own = [placed(it.id, [it] + (named.get(it.id, []) if pooled else []), kind, grid) for it in anchor]
+    named, mean_step, ranked = object_votes(parsed)
+    length = median_length(parsed)
+    own = [placed(it.id, [it] + named.get(it.id, []), kind, grid) for it in anchor]
     have = {it.id for it in anchor}
     extra = [oid for oid in ranked if oid not in have][:max(0, length - len(anchor))]
     diag["length"] = length
@@ -339,7 +309,7 @@ def failure_summary(predictions) -> str:
             free_note = (f"; without the grammar {free} of {free_known} would parse "
                          f"({_pct(free, free_known)}; the grammar changed {changed}{items_note})" if free_known else
                          f"; the grammar changed {changed} (their free answers not decoded: "
-                         "backend.report_unconstrained is false)")
+                         "decoding.report_unconstrained is false)")
             line += (f"; decoded inside the answer grammar: {closed} of {known} answers closed early by the token "
                      f"budget ({_pct(closed, known)})"
                      + (f", {repeats} ended where the model named an object again" if repeats else "")

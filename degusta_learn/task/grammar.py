@@ -59,13 +59,8 @@ _MAX_WS = 2
 class AnswerGrammar:
     """Character-level automaton of valid answers for one catalog and grid."""
 
-    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20, max_cells: int | None = None,
-                 distinct: bool = True, length: int | None = None):
-        """`max_cells` caps every type's cell count further (None: each type's footprint bound only).
-        `distinct`: an id may be placed once (false: an item may name an object again, and the reader drops it:
-        `allowing_repeats`). `length`: the list closes once it names this many distinct objects, and not before
-        (unless the token budget closes it, `closing`, or `max_items` items are written): a decoding whose count
-        is decided elsewhere (`benchmarks/fixed_length.py`)."""
+    def __init__(self, kind: str, catalog, grid=None, max_items: int = 20):
+        """`max_items`: the most items an answer may list (at most the catalog's size)."""
         if kind not in _ITEMS:
             raise DegustaError(f"answer kind: expected one of {list(_ITEMS)}, got {kind!r}")
         self.kind, self.parts = kind, _ITEMS[kind]
@@ -83,14 +78,10 @@ class AnswerGrammar:
             self.directions = list(DIRECTIONS)
             self.max_cells_of = {t: max(footprint_cells(*object_size(o), grid.rows, grid.cols)
                                         for o in catalog.of_type(t)) for t in self.types}
-            if max_cells is not None:
-                self.max_cells_of = {t: min(m, max_cells) for t, m in self.max_cells_of.items()}
             self.max_cells = max(self.max_cells_of.values(), default=0)
             """The most cells any object may list (the largest per-type bound)."""
-        self.distinct = distinct
-        if length is not None and (isinstance(length, bool) or not isinstance(length, int) or length < 1):
-            raise DegustaError(f"answer grammar length: expected an integer >= 1, got {length!r}")
-        self.length = length
+        self.distinct = True
+        """An id may be placed once (`allowing_repeats` turns this off)."""
         self._prefixes: dict = {}
         self._cell_prefixes: dict[int, set[str]] = {}
         self._repeating: AnswerGrammar | None = None
@@ -151,10 +142,9 @@ class AnswerGrammar:
                 return ("item", 0, 0, "", None, (), n)
             return ("pre", 0, off + 1, "", None, (), n) if ch in _WS and off < _MAX_WS else None
         if phase == "next":
-            short = self.length is not None and len(set(n)) < self.length  # distinct objects: repeats are dropped
-            if ch == "]" and (not short or closing or len(n) >= self.max_items):
+            if ch == "]":
                 return ("done", 0, 0, "", None, (), n)
-            if ch == "," and not closing and len(n) < self.max_items and (self.length is None or short):
+            if ch == "," and not closing and len(n) < self.max_items:
                 return ("sep", 0, 1, "", None, (), n)
             return None
         if phase == "sep":  # ", " then the item's "{"

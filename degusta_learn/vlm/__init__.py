@@ -7,7 +7,9 @@ prompt_options.py cuts a prompt down for a small model (image groups, composed c
 grammar.py + constrain.py + generate.py generate answers, optionally constrained to the answer grammar;
 tiny.py builds random-weight tiny Idefics3 / Qwen2-VL models offline; replicas.py builds full-size
 random-weight replicas of the GPU configs' models; record.py is the typed, versioned record a trained model
-folder carries (degusta_finetune.json, degusta_base.json): fine-tuning writes it, the hf backend reads it.
+folder carries (degusta_finetune.json, degusta_base.json): fine-tuning writes it, the hf backend reads it;
+settings.py is the one `model:` and `decoding:` config section every config kind that runs a VLM uses (fine-tuning,
+pretraining's validation, every zero-shot predict config).
 It stands below `prompting` and `finetune`: it imports only prompting's prompt and answer types, never its
 runner or backends, and nothing from finetune.
 Nothing here imports torch at package import time.

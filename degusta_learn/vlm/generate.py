@@ -32,7 +32,7 @@ What decoding did is recorded in each `Completion.decoding`:
 - free: `constrained: false`, `cut` (the answer ran out of `max_new_tokens` before its end-of-turn).
 
 `answer_token_budget` derives `max_new_tokens` from a dataset's ground-truth answers and the tokenizer
-(the hf backend's `max_tokens: auto`).
+(`decoding.max_new_tokens: auto` of the hf backend and of fine-tuning's validation).
 
 Example:
     model, processor = load_vlm("runs/tiny/idefics3", adapter="runs/tiny_lora/adapter")
@@ -139,7 +139,7 @@ def generate_batch(model, processor, prompts: list, n: int = 1, temperature: flo
     from degusta_learn.vlm.constrain import GrammarLogitsProcessor, Sampler
 
     if constrained and grammar is None:
-        raise DegustaError("backend.constrained: constrained decoding needs the answer grammar (catalog and grid)")
+        raise DegustaError("decoding.constrained: constrained decoding needs the answer grammar (catalog and grid)")
     if on_repeat not in ON_REPEAT:
         raise DegustaError(f"on_repeat: expected one of {list(ON_REPEAT)}, got {on_repeat!r}")
     if constrained and on_repeat in ("skip", "substitute"):
@@ -305,7 +305,7 @@ def answer_token_budget(tokenizer, ds, kind: str, grid=None, grammar=None, margi
     from degusta_learn.task.answer_format import answer_items, format_answer
 
     if not ds.arrangements:
-        raise DegustaError("max_tokens: auto: the dataset has no arrangements to size the answers from")
+        raise DegustaError("decoding.max_new_tokens: auto: the dataset has no arrangements to size the answers from")
     texts = [format_answer(answer_items(list(a.placements), ds.catalog, kind, grid), kind) for a in ds.arrangements]
     lengths = [len(ids) for ids in tokenizer(texts, add_special_tokens=False)["input_ids"]]
     reserve = grammar.max_chars_to_close if grammar is not None else 0

@@ -18,7 +18,7 @@ disk) is one line naming the key, never a traceback.
 
 Usage:
     folder = resolve_model("HuggingFaceTB/SmolVLM-256M-Instruct", key="model.name")   # downloads if needed
-    folder = resolve_model("tiny_vlm_base", key="backend.model")                      # the shipped base
+    folder = resolve_model("tiny_vlm_base", key="model.name")                         # the shipped base
 """
 
 from __future__ import annotations

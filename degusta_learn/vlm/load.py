@@ -73,7 +73,7 @@ def _processor_from(source: str, model_id_or_path: str, key: str):
 
 def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "auto", dtype: str = "auto",
              trainable_adapter: bool = False, key: str = "model", quantization_config=None,
-             merge_adapter: bool = False, local_files_only: bool = False):
+             merge_adapter: bool = False, local_files_only: bool = False, device_key: str | None = None):
     """Load (model, processor) through the Auto classes, with an optional peft adapter.
 
     Args:
@@ -83,7 +83,9 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
         device: "auto", "cpu", "cuda", "cuda:1", ...
         dtype: "auto" (bf16 on a capable GPU, else fp32), "float32", "bfloat16", "float16".
         trainable_adapter: keep the adapter weights trainable (resume training) instead of inference mode.
-        key: config key named in error messages.
+        key: config key named in error messages (`model.name`: the dtype and adapter keys are `model.dtype`,
+            `model.adapter`, its section's).
+        device_key: the config key of `device` (None: `device` in `key`'s section).
         quantization_config: a `BitsAndBytesConfig` (QLoRA); the model is then loaded straight onto the GPU.
         merge_adapter: fold the adapter into the base weights (`merge_and_unload`) for inference: the same
             function up to float rounding, without a LoRA pass beside every adapted layer (predicting with
@@ -97,8 +99,8 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
     from transformers import AutoModelForImageTextToText
 
     source = str(resolve_model(model_id_or_path, key, local_files_only=local_files_only))
-    section = key.rpartition(".")[0]  # backend.model -> backend.device, backend.dtype
-    device = resolve_device(device, f"{section}.device" if section else "device")
+    section = key.rpartition(".")[0]  # model.name -> model.dtype, model.adapter
+    device = resolve_device(device, device_key or (f"{section}.device" if section else "device"))
     torch_dtype = resolve_dtype(dtype, device, f"{section}.dtype" if section else "dtype")
     processor = _processor_from(source, model_id_or_path, key)  # the folder's files were checked above
     check_weights(Path(source), key)  # config.json describes no more than the weights hold (built on meta first)
@@ -119,7 +121,7 @@ def load_vlm(model_id_or_path: str, adapter: str | None = None, device: str = "a
                            f"only {emb.num_embeddings}; the processor files belong to another model")
     _check_image_token(model.config, processor, model_id_or_path, key)
     if adapter:
-        adapter_key = f"{key.rsplit('.', 1)[0]}.adapter" if "." in key else "adapter"  # backend.model -> backend.adapter
+        adapter_key = f"{key.rsplit('.', 1)[0]}.adapter" if "." in key else "adapter"  # model.name -> model.adapter
         model = load_adapter(model, adapter, trainable=trainable_adapter, key=adapter_key)
         if merge_adapter and not trainable_adapter and quantization_config is None \
                 and not getattr(model, "is_loaded_in_4bit", False) and not getattr(model, "is_loaded_in_8bit", False):

@@ -15,7 +15,7 @@ The `hf` backend prompts the model as the record says and, before predicting, ca
 a `FinetuneRecord` refuses a run that would score the model on participants it was trained on, or validated on
 when validation chose the weights (train/test leakage: another split `seed`, or another `dataset` whose participant
 ids overlap; the last weights of a run without early stopping may be predicted on `split: val`), and
-both records refuse images rendered at another size than in training (`image_size`).
+both records refuse images rendered at another size than in training (the predict config's `render_size`).
 
 Format versions: a fine-tuning record is format FINETUNE_VERSION; the unversioned file that degusta wrote
 before (format 1) is refused, since it lacks what the leakage guard needs: re-running the run's training
@@ -121,7 +121,7 @@ class FinetuneRecord:
     """Dataset, split seed and participants."""
 
     def check_prediction(self, fingerprint: str, participants: set[str], render_size: int, where: str = "") -> None:
-        """Refuse (one line naming `seed`, `dataset` or `image_size`) predicting on participants this model
+        """Refuse (one line naming `seed`, `dataset` or `render_size`) predicting on participants this model
         was trained or validated on, or on images rendered at another size than in training."""
         self.trained_on.check_unseen(fingerprint, participants, where or FINETUNE_FILE)
         _check_render_size(self.render_size, render_size, "data.render_size", where)
@@ -160,9 +160,9 @@ class BaseRecord:
 
 def _check_render_size(trained: int, asked: int, key: str, where: str) -> None:
     if asked != trained:
-        raise DegustaError(f"image_size: this model was trained on images rendered at {trained} px ({key} in "
+        raise DegustaError(f"render_size: this model was trained on images rendered at {trained} px ({key} in "
                            f"{where or 'its record'}), the predict config renders them at {asked} px; set "
-                           f"image_size={trained}")
+                           f"render_size={trained}")
 
 
 def write_record(folder: str | os.PathLike, record: FinetuneRecord | BaseRecord) -> Path:

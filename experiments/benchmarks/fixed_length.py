@@ -75,8 +75,8 @@ def main() -> None:
         try:
             run_predict("configs/predict_hf_base_finetuned.yaml",
                         [f"dataset={args.dataset}", f"episodes={args.episodes}", f"out={args.out}",
-                         f"backend.model={args.base or BASE_DIR}", f"backend.adapter={args.adapter}", "n=1",
-                         "temperature=0"])
+                         f"model.name={args.base or BASE_DIR}", f"model.adapter={args.adapter}", "decoding.n=1",
+                         "decoding.temperature=0"])
         finally:
             HFBackend.complete = plain
     sys.argv = [sys.argv[0], "--dataset", args.dataset, "--episodes", args.episodes, "--greedy", args.greedy,

@@ -19,8 +19,8 @@ A research script for one question (can a decoding-side length fix the count err
 two of its three ways became predict options (`votes`, `greedy_votes`; points 35, 37 and 39 record why).
 
 Usage:
-    degusta predict --config configs/predict_hf_base_finetuned.yaml --set backend.adapter=RUN/adapter \\
-        --set n=5 --set temperature=0.5 --set episodes=RUN/episodes.jsonl --set out=OUT/sampled.jsonl
+    degusta predict --config configs/predict_hf_base_finetuned.yaml --set model.adapter=RUN/adapter \\
+        --set decoding.n=5 --set decoding.temperature=0.5 --set episodes=RUN/episodes.jsonl --set out=OUT/sampled.jsonl
     python benchmarks/reaggregate.py --dataset data/naturalistic --episodes RUN/episodes.jsonl \\
         --greedy RUN/predictions/tiny_vlm_lora.jsonl --sampled OUT/sampled.jsonl
 """

@@ -14,7 +14,7 @@ a proxy, is not priced unless `prices` names the model); images counted by Anthr
 (width x height / 750, after fitting the long side in 1568 px).
 
 Example:
-    backend = AnthropicBackend.from_config(AnthropicConfig(model="claude-3-haiku-20240307"))
+    backend = AnthropicBackend.from_config(AnthropicConfig(), ModelSettings(name="claude-3-haiku-20240307"))
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig,
 from degusta_learn.prompting.backends.transport import fault_reason, guarded_client
 from degusta_learn.task.answers import STRUCTURED_KEY, STRUCTURED_NAME
 from degusta_learn.task.prompt import ImagePart, Prompt
+from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 
 @dataclass
@@ -60,7 +61,7 @@ class AnthropicBackend(RemoteBackend):
     key_env = "ANTHROPIC_API_KEY"
 
     @classmethod
-    def image_tokens(cls, width: int, height: int, cfg: AnthropicConfig) -> int:
+    def image_tokens(cls, width: int, height: int, cfg: AnthropicConfig, model: ModelSettings | None = None) -> int:
         scale = min(1.0, 1568 / max(width, height))
         return math.ceil(width * scale * height * scale / 750)
 
@@ -69,12 +70,13 @@ class AnthropicBackend(RemoteBackend):
         self.schemas = schemas  # set: structured outputs (a forced tool whose input schema is the answer's)
 
     @classmethod
-    def from_config(cls, cfg: AnthropicConfig, grid=None, catalog=None) -> AnthropicBackend:
+    def from_config(cls, cfg: AnthropicConfig, model: ModelSettings, decoding: DecodingSettings | None = None,
+                    grid=None, catalog=None) -> AnthropicBackend:
         key = api_key(cfg.api_key_env or cls.key_env)
         anthropic = _import()
         client = anthropic.Anthropic(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0,
                                      http_client=guarded_client(cfg.timeout, anthropic))  # transport.py
-        return cls(cfg.model, client, AnswerSchemas(grid, catalog) if cfg.structured_output else None)
+        return cls(model.name, client, AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     @staticmethod
     def content(prompt: Prompt) -> list[dict]:

@@ -6,8 +6,11 @@ own keys), registered by name in `BACKENDS` ("module:Class", imported on first u
 the backend is, and the runner and the cost estimator ask it, never its name, without building one (so a
 dry run loads no model): `per_sample` (one request per sample, or n in one), `cacheable`, `takes_schema`
 (structured outputs), `key_env`, `empty_is_fault` (an empty answer is the server's fault: retried),
-`is_local(cfg)` (local backends cost nothing), `image_tokens` and `price` (what a request costs). `make_backend(cfg, grid, catalog)` builds one (`from_config`; only the hf
-backend uses grid + catalog, for constrained decoding). Backends do no retrying and no caching: the
+`is_local(cfg)` (local backends cost nothing), `local_decoding` (it runs the model and decodes itself: hf),
+`default_model`, `image_tokens` and `price` (what a request costs). `make_backend(cfg, model, decoding, grid,
+catalog)` builds one (`from_config`; only the hf backend uses grid + catalog, for constrained decoding). Which model
+answers and how it decodes are not backend keys but the run's `model:` and `decoding:` sections
+(`vlm.settings`), handed to the backend beside its own section. Backends do no retrying and no caching: the
 runner does both. A failed request raises `BackendError`; `retryable=True` (rate limits, server errors,
 timeouts, dropped connections) makes the runner back off and retry, `fatal=True` (bad key, unknown
 model) stops the run, anything else is recorded as a failure of that episode's samples.
@@ -19,7 +22,7 @@ API keys are read only from the environment variable named by `api_key_env` (def
 message a backend raises and from everything the prompting package writes.
 
 Example:
-    backend = make_backend(backend_config("openai", model="gpt-4o"), grid, ds.catalog)
+    backend = make_backend(backend_config("openai"), ModelSettings(name="gpt-4o"), grid=grid, catalog=ds.catalog)
     completions = backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
 """
 
@@ -35,6 +38,7 @@ from typing import Any, ClassVar
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting import costs
 from degusta_learn.task.prompt import Completion, Prompt
+from degusta_learn.vlm.settings import API_MAX_NEW_TOKENS, ON_REPEAT_RENAMED, DecodingSettings, ModelSettings
 
 BACKENDS: dict[str, str] = {
     "openai": "degusta_learn.prompting.backends.openai:OpenAIBackend",
@@ -48,7 +52,8 @@ DEFAULT_BACKEND = "openai"
 
 # The response cache keys every answer by these backend keys (cache.sample_keys). They were once the keys
 # of one flat config shared by every backend: a backend without one of them keys it at that config's
-# default, so caches made before the per-backend configs stay valid.
+# default, so caches made before the per-backend configs stay valid. adapter, constrained, dtype and
+# image_size are now the `model:` / `decoding:` sections' (an API backend takes them at these values).
 KEYED_DEFAULTS: dict[str, Any] = {"base_url": None, "detail": None, "adapter": None, "constrained": False,
                                   "dtype": "auto", "image_size": None, "path": None}
 
@@ -82,6 +87,12 @@ def _backends_with(test) -> list[str]:
 
 _MODEL_HINT = {"hf": "a model folder or a Hugging Face id"}
 
+RENAMED_KEYS: dict[str, str] = {
+    "model": "model.name", "adapter": "model.adapter", "dtype": "model.dtype", "image_size": "model.image_size",
+    "max_tokens": "decoding.max_new_tokens", "constrained": "decoding.constrained", "on_repeat": "decoding.on_repeat",
+    "report_unconstrained": "decoding.report_unconstrained", "stop_on_repeat": ON_REPEAT_RENAMED}
+"""The keys a `backend:` section had before the model and its decoding got one spelling in every config kind."""
+
 
 @dataclass
 class BackendConfig:
@@ -89,23 +100,17 @@ class BackendConfig:
 
     name: str = DEFAULT_BACKEND
     """Which backend (a name in `BACKENDS`): openai (any OpenAI-compatible server), anthropic, gemini, hf, replay."""
-    model: str = ""
-    """Model name at the service (or a hub id / folder for hf); required, except for openai (gpt-4o, the
-    paper's) and replay."""
-    max_tokens: int = 1024
-    """Most tokens per sampled answer."""
     structured_output: bool = False
     """Force the answer to a JSON schema (`{"objects": [...]}`; openai json_schema strict, anthropic forced
     tool, gemini response_schema). Default false: the paper's free-text answers. hf: not available (use
-    `constrained`); replay: ignored (recorded answers of either kind parse)."""
+    `decoding.constrained`); replay: ignored (recorded answers of either kind parse)."""
 
     answer_keys: ClassVar[tuple[str, ...]] = ()
     """This backend's own keys that change what the model answers (they join every cache key)."""
+    RENAMED: ClassVar[dict[str, str]] = RENAMED_KEYS
 
     def __post_init__(self):
         cls = backend_class(self.name)
-        if self.max_tokens != "auto" and self.max_tokens < 1:  # auto: hf only (HFConfig), sized from the data
-            raise DegustaError(f"backend.max_tokens: expected >= 1, got {self.max_tokens}")
         if self.structured_output and not cls.takes_schema:
             raise DegustaError(f"backend.structured_output: the {self.name} backend takes no JSON schema; it works "
                                f"with {', '.join(_backends_with(lambda c: c.takes_schema))}{cls.schema_hint}")
@@ -132,14 +137,16 @@ class BackendConfig:
                                    f"whole section: --set '{section}={{name: {name}, ...}}')")
         return config
 
-    def answer_fields(self) -> dict[str, Any]:
-        """The keys that change what the model answers, as the response cache keys them."""
-        return {"name": self.name, "model": self.model, **KEYED_DEFAULTS,
+    def answer_fields(self, model: ModelSettings, decoding: DecodingSettings) -> dict[str, Any]:
+        """The keys that change what the model answers, as the response cache keys them: the backend's, the model's
+        name and (a backend that decodes itself adds them: hf) the model and decoding keys it reads."""
+        return {"name": self.name, "model": model.name, **KEYED_DEFAULTS,
                 **{k: getattr(self, k) for k in self.answer_keys}}
 
 
 def backend_config(name: str = DEFAULT_BACKEND, **keys) -> BackendConfig:
-    """The config of backend `name` with `keys`, checked as a `backend:` section of a config file is."""
+    """The config of backend `name` with `keys` (its `backend:` section only: the model is a `ModelSettings`),
+    checked as a `backend:` section of a config file is."""
     from degusta_learn.config import from_dict
 
     return from_dict(BackendConfig, {"name": name, **keys}, prefix="backend.")
@@ -153,6 +160,13 @@ class Backend:
     """The name it is registered under (`BACKENDS`) and written in configs, ledgers and diagnostics."""
     config_class: ClassVar[type[BackendConfig]] = BackendConfig
     """Its `backend:` section: a BackendConfig subclass whose `name` defaults to this backend's."""
+    default_model: ClassVar[str] = ""
+    """`model.name` when a config leaves it empty (openai: gpt-4o, the paper's; "": a model must be named)."""
+    local_decoding: ClassVar[bool] = False
+    """True: the model runs here and the backend decodes itself (hf), so the `model:` keys adapter / dtype /
+    image_size and the `decoding:` keys constrained / on_repeat / report_unconstrained apply (`constrained` null is
+    true); False: a service or a file answers, those keys stay at their defaults (`vlm.settings.check_api_settings`)
+    and `decoding.max_new_tokens: auto` is `vlm.settings.API_MAX_NEW_TOKENS`."""
     per_sample: ClassVar[bool] = False
     """True: one request per sample (an API without `n`), so the runner asks for one answer at a time and
     caches each at once; False: n samples in one request (fewer returned are asked for again)."""
@@ -177,35 +191,41 @@ class Backend:
         return False
 
     @classmethod
-    def image_tokens(cls, width: int, height: int, cfg: BackendConfig) -> int:
+    def image_tokens(cls, width: int, height: int, cfg: BackendConfig, model: ModelSettings) -> int:
         """Input tokens one image of a prompt costs (the provider's rule; an estimate for local models)."""
         return costs.tile_image_tokens(width, height)
 
     @classmethod
-    def input_tokens(cls, prompt: Prompt, cfg: BackendConfig) -> int:
+    def input_tokens(cls, prompt: Prompt, cfg: BackendConfig, model: ModelSettings) -> int:
         """Estimated input tokens of one request carrying `prompt`."""
-        return costs.prompt_tokens(prompt, lambda w, h: cls.image_tokens(w, h, cfg))
+        return costs.prompt_tokens(prompt, lambda w, h: cls.image_tokens(w, h, cfg, model))
 
     @classmethod
-    def check_run(cls, cfg: BackendConfig, ds, episodes: list, image_size: int) -> None:
+    def check_run(cls, cfg: BackendConfig, model: ModelSettings, ds, episodes: list, render_size: int) -> None:
         """Refuse, before anything is built or loaded, a run this backend must not serve (one line): no model
         named; the hf backend also refuses episodes of participants its fine-tuned model was trained or validated
-        on."""
-        if not isinstance(cfg.model, str) or not cfg.model.strip():
-            raise DegustaError(f"backend.model: required for the {cfg.name} backend "
+        on, and images rendered at another `render_size` than in training."""
+        if not isinstance(model.name, str) or not model.name.strip():
+            raise DegustaError(f"model.name: required for the {cfg.name} backend "
                                f"({_MODEL_HINT.get(cfg.name, 'the model name at the service')})")
 
     @classmethod
-    def price(cls, cfg: BackendConfig, prices: dict[str, Any]) -> tuple[float, float] | None:
+    def price(cls, cfg: BackendConfig, model: ModelSettings, prices: dict[str, Any]) -> tuple[float, float] | None:
         """USD per 1M (input, output) tokens of a request (None: free or unknown); `prices` overrides the table."""
-        if cls.is_local(cfg) and cfg.model not in prices:
+        if cls.is_local(cfg) and model.name not in prices:
             return None
-        return costs.price(cfg.model, prices)
+        return costs.price(model.name, prices)
 
     @classmethod
-    def from_config(cls, cfg: BackendConfig, grid=None, catalog=None) -> Backend:
-        """Build the backend (clients, keys, a local model) from its config."""
+    def from_config(cls, cfg: BackendConfig, model: ModelSettings, decoding: DecodingSettings, grid=None,
+                    catalog=None) -> Backend:
+        """Build the backend (clients, keys, a local model) from its section, the model and its decoding."""
         raise NotImplementedError
+
+    def token_budget(self, ds, method: str) -> dict:
+        """`decoding.max_new_tokens: auto` for this backend: {"max_new_tokens": ...} (an API backend's is
+        `vlm.settings.API_MAX_NEW_TOKENS`; hf sizes it from `ds` with its tokenizer)."""
+        return {"max_new_tokens": API_MAX_NEW_TOKENS}
 
     def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
                  seed: int | None = None) -> list[Completion]:
@@ -306,6 +326,10 @@ class AnswerSchemas:
         return self._schemas[kind]
 
 
-def make_backend(cfg: BackendConfig, grid=None, catalog=None) -> Backend:
-    """Build the backend `cfg` names (imports its module on first use)."""
-    return backend_class(cfg.name).from_config(cfg, grid, catalog)
+def make_backend(cfg: BackendConfig, model: ModelSettings, decoding: DecodingSettings | None = None, grid=None,
+                 catalog=None) -> Backend:
+    """Build the backend `cfg` names (imports its module on first use) serving `model`, decoding as `decoding` says
+    (None: the defaults, `constrained` null decided for the backend)."""
+    cls = backend_class(cfg.name)
+    decoding = (decoding or DecodingSettings()).resolved(local=cls.local_decoding)
+    return cls.from_config(cfg, model, decoding, grid, catalog)

@@ -12,7 +12,7 @@ What it is: one request per sample; a paid service priced by model name (a `base
 a proxy, is not priced unless `prices` names the model); 258 input tokens an image.
 
 Example:
-    backend = GeminiBackend.from_config(GeminiConfig(model="gemini-1.5-pro"))
+    backend = GeminiBackend.from_config(GeminiConfig(), ModelSettings(name="gemini-1.5-pro"))
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from degusta_learn.prompting.backends.base import AnswerSchemas, BackendError, C
 from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig
 from degusta_learn.prompting.backends.transport import fault_reason, guarded_client, guarded_transport
 from degusta_learn.task.prompt import ImagePart, Prompt
+from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 
 @dataclass
@@ -59,7 +60,7 @@ class GeminiBackend(RemoteBackend):
     key_env = "GEMINI_API_KEY"
 
     @classmethod
-    def image_tokens(cls, width: int, height: int, cfg: GeminiConfig) -> int:
+    def image_tokens(cls, width: int, height: int, cfg: GeminiConfig, model: ModelSettings | None = None) -> int:
         return 258
 
     def __init__(self, model: str, client, schemas: AnswerSchemas | None = None):
@@ -67,7 +68,8 @@ class GeminiBackend(RemoteBackend):
         self.schemas = schemas  # set: structured outputs (response_mime_type + response_schema)
 
     @classmethod
-    def from_config(cls, cfg: GeminiConfig, grid=None, catalog=None) -> GeminiBackend:
+    def from_config(cls, cfg: GeminiConfig, model: ModelSettings, decoding: DecodingSettings | None = None,
+                    grid=None, catalog=None) -> GeminiBackend:
         key = api_key(cfg.api_key_env or cls.key_env)
         genai, types, _ = _import()
         options = {"timeout": max(1, int(cfg.timeout * 1000)), **({"base_url": cfg.base_url} if cfg.base_url else {})}
@@ -76,7 +78,7 @@ class GeminiBackend(RemoteBackend):
             options["httpx_client"] = guarded_client(cfg.timeout)
         elif "client_args" in fields:  # an older google-genai: the client it builds gets the same transport
             options["client_args"] = {"transport": guarded_transport(cfg.timeout)}
-        return cls(cfg.model, genai.Client(api_key=key, http_options=types.HttpOptions(**options)),
+        return cls(model.name, genai.Client(api_key=key, http_options=types.HttpOptions(**options)),
                    AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,

@@ -21,7 +21,7 @@ machine (loopback `base_url`), which costs nothing unless `prices` names the mod
 OpenAI's tile rule (`costs.tile_image_tokens`, at the configured `detail`).
 
 Example:
-    backend = OpenAIBackend.from_config(OpenAIConfig(model="gpt-4o"))
+    backend = OpenAIBackend.from_config(OpenAIConfig(), ModelSettings(name="gpt-4o"), DecodingSettings())
     backend.complete(prompt, n=5, temperature=1.0, max_tokens=1024)
 """
 
@@ -39,6 +39,7 @@ from degusta_learn.prompting.backends.remote import RemoteBackend, RemoteConfig,
 from degusta_learn.prompting.backends.transport import fault_reason, guarded_client
 from degusta_learn.task.answers import STRUCTURED_NAME
 from degusta_learn.task.prompt import ImagePart, Prompt
+from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 
 @dataclass
@@ -46,7 +47,6 @@ class OpenAIConfig(RemoteConfig):
     """The `backend:` keys of the openai backend (GPT-4o or any OpenAI-compatible server)."""
 
     name: str = "openai"
-    model: str = "gpt-4o"
     detail: Literal["low", "high", "auto"] | None = None
     """Image detail "low" (85 tokens an image), "high" or "auto" (unset: the server default)."""
 
@@ -73,9 +73,10 @@ class OpenAIBackend(RemoteBackend):
     cacheable = True
     takes_schema = True  # response_format json_schema
     key_env = "OPENAI_API_KEY"
+    default_model = "gpt-4o"  # the paper's
 
     @classmethod
-    def image_tokens(cls, width: int, height: int, cfg: OpenAIConfig) -> int:
+    def image_tokens(cls, width: int, height: int, cfg: OpenAIConfig, model: ModelSettings | None = None) -> int:
         return costs.tile_image_tokens(width, height, cfg.detail)
 
     def __init__(self, model: str, client, detail: str | None = None, schemas: AnswerSchemas | None = None):
@@ -84,7 +85,8 @@ class OpenAIBackend(RemoteBackend):
         self.max_tokens_key = "max_tokens"
 
     @classmethod
-    def from_config(cls, cfg: OpenAIConfig, grid=None, catalog=None) -> OpenAIBackend:
+    def from_config(cls, cfg: OpenAIConfig, model: ModelSettings, decoding: DecodingSettings | None = None,
+                    grid=None, catalog=None) -> OpenAIBackend:
         import openai
 
         # The default OPENAI_API_KEY is only ever sent to OpenAI itself; another server (vLLM, Ollama, a
@@ -93,7 +95,7 @@ class OpenAIBackend(RemoteBackend):
         key = (api_key(cfg.api_key_env or cls.key_env) if cfg.api_key_env or official else None) or "not-needed"
         client = openai.OpenAI(api_key=key, base_url=cfg.base_url, timeout=cfg.timeout, max_retries=0,
                                http_client=guarded_client(cfg.timeout, openai))  # a deadline, bounded replies
-        return cls(cfg.model, client, cfg.detail,
+        return cls(model.name, client, cfg.detail,
                    AnswerSchemas(grid, catalog) if cfg.structured_output else None)
 
     def messages(self, prompt: Prompt) -> list[dict]:

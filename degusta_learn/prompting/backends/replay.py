@@ -23,6 +23,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.files.jsonio import read_jsonl
 from degusta_learn.prompting.backends.base import Backend, BackendConfig, Completion
 from degusta_learn.task.prompt import Prompt
+from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 
 @dataclass
@@ -30,7 +31,6 @@ class ReplayConfig(BackendConfig):
     """The `backend:` keys of the replay backend."""
 
     name: str = "replay"
-    model: str = "replay"
     path: str | None = None
     """The JSONL file of recorded answers (required)."""
 
@@ -81,6 +81,7 @@ class ReplayBackend(Backend):
     cacheable = False  # nothing to save: the file is the cache
     takes_schema = True  # ignored: recorded answers of either kind parse
     key_env = None
+    default_model = "replay"  # a label: the recorded answers are whichever model's
 
     @classmethod
     def is_local(cls, cfg: ReplayConfig) -> bool:
@@ -90,10 +91,11 @@ class ReplayBackend(Backend):
         self.answers, self.model = answers, model
 
     @classmethod
-    def from_config(cls, cfg: ReplayConfig, grid=None, catalog=None) -> ReplayBackend:
+    def from_config(cls, cfg: ReplayConfig, model: ModelSettings, decoding: DecodingSettings | None = None,
+                    grid=None, catalog=None) -> ReplayBackend:
         if not cfg.path:
             raise DegustaError("backend.path: the replay backend needs the file of recorded answers")
-        return cls(read_replay(cfg.path), model=cfg.model)
+        return cls(read_replay(cfg.path), model=model.name)
 
     def complete(self, prompt: Prompt, n: int, temperature: float, max_tokens: int,
                  seed: int | None = None) -> list[Completion]:
