@@ -35,25 +35,23 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
-import itertools
 import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Literal
 
-import numpy as np
 
 from degusta_learn.config import bounded, load_config, seed_field
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import METHOD_NAME, EpisodeRow, check_records, score_predictions
-from degusta_learn.evaluate.summary import rank_methods, summarize
+from degusta_learn.evaluate.summary import paired_comparisons, rank_methods, summarize
 from degusta_learn.files.folders import OutputKind, check_target, write_folder
 from degusta_learn.files.guard import refuse_replacing_inputs
 from degusta_learn.files.identity import file_sha256, stat_tree
 from degusta_learn.files.jsonio import atomic_write_json, read_json
 from degusta_learn.files.locks import hold
-from degusta_learn.metrics import acceptability_curve, paired_bootstrap
+from degusta_learn.metrics import acceptability_curve
 from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
 from degusta_learn.prompting.backends.base import backend_class
 from degusta_learn.render.lifting import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
@@ -442,27 +440,10 @@ def _output_names(cfg: CompareConfig, pred_dir: Path) -> None:
                                    f"predictions/{name}; rename one of them")
 
 
-PAIRED_METRICS = ("set_rmsd", "object_accuracy", "rmsd")
-
-
 def paired_table(rows: list[EpisodeRow], methods: list[str], n_bootstrap: int, seed: int) -> list[dict]:
-    """Paired bootstrap differences (b - a) per metric for every pair of methods on shared episodes.
-
-    Pairs follow the order of `methods` (pass them ranked: a is then the better-ranked method).
-    """
-    by = {m: {r.episode: r for r in rows if r.method == m} for m in methods}
-    out = []
-    for a, b in itertools.combinations(methods, 2):
-        eps = sorted(set(by[a]) & set(by[b]))
-        entry = {"a": a, "b": b}
-        for metric in PAIRED_METRICS:
-            va = np.array([getattr(by[a][e], metric) for e in eps], dtype=float)
-            vb = np.array([getattr(by[b][e], metric) for e in eps], dtype=float)
-            ok = np.isfinite(va) & np.isfinite(vb)
-            entry[metric] = (paired_bootstrap(vb[ok], va[ok], n_resamples=n_bootstrap, seed=seed)  # mean(b - a)
-                             if ok.sum() >= 2 else None)
-        out.append(entry)
-    return out
+    """Paired differences (b - a) of every pair of methods on their shared episodes, participants resampled
+    (`summary.paired_comparisons`; pass the methods ranked: a is then the better-ranked one)."""
+    return paired_comparisons(rows, methods, n_bootstrap, seed, cluster="participant")
 
 
 def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, config_path) -> None:

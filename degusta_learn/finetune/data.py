@@ -47,7 +47,7 @@ class Example:
     participant: str = ""
     target: int = -1
     context: tuple = ()
-    """The trials the prompt shows as context (aggregation greedy_votes_context takes their object counts)."""
+    """The trials the prompt shows as context."""
     meta: dict = field(default_factory=dict)
     """What scoring needs beyond the answer text (perception examples: task and ground truth)."""
     followups: tuple = ()

@@ -46,7 +46,7 @@ def estimate_run(run, episodes: list) -> dict[str, Any]:
         missing = len(keys) - len(hits)
         tokens = run.input_tokens(prompt)
         per_prompt.append(tokens)
-        sampled = sum(k not in hits for k in keys[:run.cfg.decoding.n])  # greedy_votes' greedy answer: a request of its own
+        sampled = sum(k not in hits for k in keys[:run.cfg.decoding.n])  # greedy_votes_pooled's greedy answer: a request of its own
         requests = missing if run.per_sample else int(sampled > 0) + (missing - sampled)
         est["episodes_to_run"] += int(missing > 0)
         est["samples"] += missing

@@ -2,7 +2,7 @@
 
 `backend.path` is either
 - a JSONL file with one sampled answer a line: `{"episode": "p001/t2/k4", "sample": 0, "text": "[...]"}`
-  (`"sample": "greedy"`: the greedy answer the `aggregation: greedy_votes` kinds ask for), or
+  (`"sample": "greedy"`: the greedy answer `aggregation: greedy_votes_pooled` asks for), or
 - a predictions.jsonl written by a zero-shot run (its `diagnostics.responses` hold the raw answers,
   `diagnostics.greedy_response` the greedy one).
 
