@@ -349,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=IMAGE_SIZE, default=448, help="pixels per object-type sheet")
     p.set_defaults(func=cmd_render_catalog)
 
-    p = verbs.add_parser("quickstart", help="the main job on the embedded default (CPU, about 10 minutes on 2 cores)")
+    p = verbs.add_parser("quickstart", help="the main job on the embedded default (CPU, about 5 minutes on 2 cores)")
     p.add_argument("--out", type=_out_arg, default=Path("quickstart"), help="where everything is written")
     p.add_argument("--small", action="store_true", help="a reduced size that finishes in a few minutes (CI)")
     p.add_argument("--with-api", action="store_true",

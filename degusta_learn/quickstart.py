@@ -1,4 +1,4 @@
-"""`degusta quickstart`: the main job on the embedded default, on a 2-core CPU in about 10 minutes.
+"""`degusta quickstart`: the main job on the embedded default, on a 2-core CPU in about 5 minutes.
 
 Usage:
     degusta quickstart                      # everything under ./quickstart/
