@@ -57,6 +57,9 @@ def test_compare_matches_evaluate_and_links_resolve(setup, small_dataset_dir, tm
                     "failure_rate", "degenerate", "frac_le2_matched"):
             assert cmp_metrics[m][key] == ev_metrics[m][key], (m, key)
     report = (out / "report.md").read_text()
+    acceptability = report.split("## Acceptability", 1)[1].split("\n## ", 1)[0]
+    assert acceptability.count("| RMSD threshold |") == 1  # one table: the people's row beside every method's
+    assert acceptability.count("% of ratings with drop < 0.2") == 1 and "rating drop is below 0.2" in acceptability
     links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
     assert any(link.startswith("plots/") for link in links) and any(link.startswith("qualitative/") for link in links)
     for link in links:

@@ -206,8 +206,10 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         lines += ["## Results", "", *method_table(summary), "", intervals_line(summary), "",
                   *few_object_warnings(summary), "![metrics](plots/metrics.png)", ""]
         lines += [*plan_table(summary), "", intervals_line(summary), ""]
-        lines += ["## Acceptability (the paper's Table 1)", "", *acceptability_lines(curve, ds.ratings is not None), "",
-                  *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
+        # the source sentence of evaluate's acceptability section, then one table: the people's row and every method's
+        # (evaluate's table of the people's row alone would repeat that row)
+        lines += ["## Acceptability (the paper's Table 1)", "", acceptability_lines(curve, ds.ratings is not None)[0],
+                  "", *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
         ctx = context_table(summary)
         if ctx:
             lines += ["## Set RMSD, object accuracy and Kabsch RMSD by context length (the paper's Table 2, "
