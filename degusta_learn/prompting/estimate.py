@@ -5,7 +5,8 @@ response cache is opened read-only (never created), so samples already answered 
 Output tokens per sample are estimated from the canonical answers of the dataset's own arrangements
 (`est_output_tokens` overrides that). What a request takes and costs (image tokens, one request per sample
 or n in one, the price) is asked of the backend's class, which is never built: a dry run loads no model
-and needs no key.
+and needs no key. The input tokens a request would take under each prompt style (`prompt_style`: clarified,
+paper) are shown beside the configured one's (`tokens_by_style`).
 
 Example:
     degusta predict --config configs/zeroshot_mogma_gpt4o.yaml --dry-run
@@ -57,9 +58,34 @@ def estimate_run(run, episodes: list) -> dict[str, Any]:
     if cache:
         cache.close()
     est["input_tokens_per_request"] = round(sum(per_prompt) / max(1, len(per_prompt)))
+    est["prompt_style"] = run.cfg.prompt_style
+    est["input_tokens_per_request_by_style"] = tokens_by_style(run, episodes, per_prompt)
     est["cost_usd"] = cost(run.price, est["input_tokens"], est["output_tokens"])
     est["price_usd_per_1m"] = list(run.price) if run.price else None
     return est
+
+
+def tokens_by_style(run, episodes: list, own_tokens: list[int]) -> dict[str, int]:
+    """Mean input tokens a request of `run` would take under each prompt style (`task.prompt.PROMPT_STYLES`).
+
+    `own_tokens` are the episodes' counts under the configured style. The styles differ only in their text parts
+    (the same images in the same order), and that text depends on the context length alone, so another style's
+    count is each episode's own plus the difference measured on the first episode of its context length: one
+    extra prompt per context length, not one per episode.
+    """
+    from degusta_learn.task.prompt import PROMPT_STYLES
+
+    if not episodes:
+        return {}
+    first: dict[int, int] = {}
+    for i, ep in enumerate(episodes):
+        first.setdefault(len(ep.context), i)
+    out = {}
+    for style in PROMPT_STYLES:
+        delta = {k: 0 if style == run.cfg.prompt_style else
+                 run.input_tokens(run.prompt(episodes[i], style)[0]) - own_tokens[i] for k, i in first.items()}
+        out[style] = round(sum(t + delta[len(ep.context)] for t, ep in zip(own_tokens, episodes)) / len(episodes))
+    return out
 
 
 def print_estimate(cfg, est: dict[str, Any]) -> None:
@@ -77,5 +103,9 @@ def print_estimate(cfg, est: dict[str, Any]) -> None:
     print(f"  estimated tokens: {est['input_tokens']:,} input ({est['input_tokens_per_request']:,} a request) + "
           f"{est['output_tokens']:,} output ({est['output_tokens_per_sample']} a sample) "
           f"= {tokens_per_ep:,.0f} an episode")
+    by_style = est.get("input_tokens_per_request_by_style") or {}
+    if by_style:
+        shown = ", ".join(f"{style} {tokens:,}" for style, tokens in by_style.items())
+        print(f"  prompt_style: {est['prompt_style']} (input tokens a request by prompt style: {shown})")
     print(f"  estimated cost: USD {est['cost_usd']:.4f} {priced}; about USD {per_ep:.4f} an episode")
     print(f"  ({PAPER_ANCHOR})")

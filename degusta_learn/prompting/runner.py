@@ -42,7 +42,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from tqdm import tqdm
 
@@ -111,6 +111,9 @@ class ZeroShotConfig(PredictConfig):
     """Side in pixels the lifted images are rendered at (more pixels: more image tokens); a fine-tuned model's own."""
     image_format: str = "jpeg"
     """jpeg or png (the names in the prompt follow: final_state_1.jpg / .png)."""
+    prompt_style: Literal["clarified", "paper"] = "clarified"
+    """The prompt's text (task.prompt.PROMPT_STYLES): clarified (the appendix prompt with cell naming, the object types,
+    the coordinate convention and the placement-order request added) or paper (the appendix prompts verbatim)."""
     grid: Grid = field(default_factory=Grid)
     """Grid of grid methods."""
     max_retries: int = 5
@@ -327,10 +330,12 @@ class ZeroShotRun:
         """Estimated input tokens of one request carrying `prompt` (with the answer schema it sends)."""
         return self.backend_cls.input_tokens(prompt, self.cfg.backend, self.cfg.model) + self.schema_tokens
 
-    def prompt(self, ep: Episode) -> tuple[Prompt, list[str]]:
+    def prompt(self, ep: Episode, style: str | None = None) -> tuple[Prompt, list[str]]:
+        """The prompt of `ep` and its samples' cache keys; `style` (default: the config's `prompt_style`) lets the
+        dry run price the other prompt style."""
         c = self.cfg
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
-                              structured=c.backend.structured_output)
+                              structured=c.backend.structured_output, style=style or c.prompt_style)
         d = c.decoding
         keys = sample_keys(prompt, c.backend, c.model, d, d.sampling_temperature, self.max_tokens, c.seed, d.n,
                            schema=self.schema)
@@ -489,8 +494,8 @@ class ZeroShotRun:
         anchor = parsed[n] if len(parsed) > n else None
         placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.decoding.aggregation, anchor=anchor)
         kept = [cut_answer(s.text) if s else None for s in samples]  # bounded, whatever a cache holds
-        diag = {"backend": self.cfg.backend.name, "model": self.cfg.model.name, "n": n,
-                "cached": cached, "responses": kept[:n],
+        diag = {"backend": self.cfg.backend.name, "model": self.cfg.model.name, "prompt_style": self.cfg.prompt_style,
+                "n": n, "cached": cached, "responses": kept[:n],
                 **({"greedy_response": kept[n]} if len(samples) > n else {}),
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
                 "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors,
@@ -618,7 +623,7 @@ class ZeroShotRun:
             "kind": LEDGER_MARK, "method": c.method, "out": str(self.out), "backend": c.backend.name,
             "model": c.model.name,
             "base_url": getattr(c.backend, "base_url", None),  # null: a backend that calls no server (hf, replay)
-            "structured_output": c.backend.structured_output,
+            "structured_output": c.backend.structured_output, "prompt_style": c.prompt_style,
             "n": c.decoding.n, "aggregation": c.decoding.aggregation, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),
             "episodes_unanswered": len(unanswered), "stopped": stopped,

@@ -11,6 +11,13 @@ file-like names the task text refers to, following the paper's appendix:
 
 Backends send the parts in order (text as text, images as images) and the model never sees file names,
 so every image is preceded by a text part naming it ("final_state_1.jpg:").
+
+Two prompt styles (`PROMPT_STYLES`; the same images in the same order, only the text differs):
+- `clarified` (the default): the appendix prompt with cell naming, the object types, the coordinate convention
+  and the placement-order request added, a preamble line before the objects, and its own context-0 sentence
+  (`task_text`);
+- `paper`: the appendix prompts verbatim (`PAPER_PROMPTS`, `paper_task_text`), no preamble lines.
+
 A `Completion` is one sampled answer to a prompt (what every backend and `vlm.generate` return).
 
 Example:
@@ -40,6 +47,39 @@ from degusta_learn.names import PROMPT_METHODS  # noqa: E402  (re-exported: the 
 
 IMAGE_FORMATS = {"jpeg": ("jpg", "image/jpeg"), "png": ("png", "image/png")}
 JPEG_QUALITY = 90
+PROMPT_STYLES = ("clarified", "paper")
+"""The prompt texts `build_prompt` writes (`prompt_style` of a predict config): see the module docstring."""
+
+PAPER_PROMPTS = {
+    "objects_as_language": (
+        "My preferences for setting a table are shown in the first images. You are helping me set the table in the "
+        "final image according to my preferences. What objects should I place in this image, where should I place "
+        "them, and how should they be oriented? Give a position in [x,y] where each value is a number between 0 and "
+        "1. Give rotation as the number of degrees clockwise from image north. Give your answer as a python list "
+        "formatted as follows: [{'type':object_type, 'id': object_reference_id, 'position': [x, y], 'rotation': "
+        "degrees}]. Give object_id as an integer. Include only this list in your response."),
+    "unmarked": (
+        "My preferences for setting a table are shown in the images named final_state_K.jpg. You are helping me set "
+        "the table in initial_state_1.jpg according to my preferences. What objects should I place in this image, "
+        "where should I place them, and how should they be oriented? Give a position in [x,y] where each value is a "
+        "number between 0 and 1. Give rotation as the number of degrees clockwise from image north. Give your answer "
+        "as a python list formatted as follows: [{'type':object_type, 'id': object_reference_id, 'position': [x, y], "
+        "'rotation': degrees}]. Give object_id as an integer. Include only this list in your response."),
+    "grid": (
+        "My preferences for setting a table are shown in the images named final_state_N.jpg. You are helping me set "
+        "the table in initial_state_1.jpg according to my preferences. What objects should I place in this image, "
+        "where should I place them, and how should they be oriented? Please list all grid cells the object will "
+        "intersect after it is placed. Give the orientation as the closest cardinal direction [N, NE, E, SE, S, SW, "
+        "W, NW] the object is pointing in after it is placed. The top of the image is N. Give your answer as a python "
+        "list formatted as follows: [{'type':object_type, 'id': object_reference_id, 'position':[grid_cell_ids], "
+        "'cardinal_direction':direction}]. Give grid_cell_ids as a list of string. Give object_id as an integer. "
+        "Include only this list in your response."),
+}
+"""The three prompts of the paper's appendix ("Prompts": Objects as Language, Unmarked Arrangements, Grid Marked
+Arrangements) as plain text: the `spverbatim` blocks with surrounding whitespace stripped and every quote mark
+written as ' (the appendix mixes `type', 'type' and typographic quotes inside one python dict: typesetting, not
+content). `final_state_K.jpg` / `final_state_N.jpg` are the appendix's placeholders for the context images."""
+_QUESTION = "What objects should I place in this image, where should I place them, and how should they be oriented? "
 
 
 @dataclass
@@ -87,6 +127,8 @@ class Prompt:
     """Each context image's arrangement in the answer format, by image name (`final_state_1.jpg` -> answer
     text). Not part of what the model sees unless a small model's `PromptOptions.context_answers` puts it in
     the text (`vlm.prompt_options.adapt_prompt`)."""
+    style: str = "clarified"
+    """The text's style (`PROMPT_STYLES`): what the dry run and the predictions' diagnostics report."""
 
     @property
     def text(self) -> str:
@@ -115,8 +157,14 @@ def _check_method(method: str) -> None:
         raise DegustaError(f"method: unknown prompting method {method!r} (known: {', '.join(PROMPT_METHODS)})")
 
 
+def check_style(style: str, key: str = "prompt_style") -> None:
+    """Refuse a prompt style that is not one of `PROMPT_STYLES` (one line naming `key`)."""
+    if style not in PROMPT_STYLES:
+        raise DegustaError(f"{key}: expected one of {list(PROMPT_STYLES)}, got {style!r}")
+
+
 def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Grid | int | None = None,
-                 image_format: str = "jpeg", structured: bool = False) -> Prompt:
+                 image_format: str = "jpeg", structured: bool = False, style: str = "clarified") -> Prompt:
     """Build the prompt of `method` for one episode.
 
     Args:
@@ -128,6 +176,11 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
         image_format: "jpeg" or "png" (also sets the file extension in the names).
         structured: ask for the JSON object `{"objects": [...]}` instead of a python list
             (`backend.structured_output`; the rest of the prompt is identical).
+        style: "clarified" (`task_text`, a preamble line before the objects) or "paper" (`paper_task_text`, the
+            objects with no preamble: the GoMO sheets alone, or the catalog JSON alone). Both keep the images, their
+            order, the "name:" label before each image (the paper's text names final_state_k.jpg and
+            initial_state_1.jpg, which a model only sees written out) and each context image's placement-order line
+            (the paper includes the placement order in the prompt without giving its wording).
 
     Returns:
         The Prompt; `prompt.images` are in the order the text refers to them.
@@ -136,6 +189,7 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
     from degusta_learn.render.lifting import oal_text, order_text
 
     _check_method(method)
+    check_style(style, "style")
     if image_format not in IMAGE_FORMATS:
         raise DegustaError(f"image_format: expected one of {list(IMAGE_FORMATS)}, got {image_format!r}")
     ext = IMAGE_FORMATS[image_format][0]
@@ -153,12 +207,16 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
         parts.append(f"{name}:")
         parts.append(ImagePart(name=name, image=img, format=image_format))
 
+    paper = style == "paper"
     # 1. The objects on offer.
     if marked:
-        parts.append("These are the objects I have, one image per object type. Each object is marked "
-                     "with its object_reference_id.")
+        if not paper:
+            parts.append("These are the objects I have, one image per object type. Each object is marked "
+                         "with its object_reference_id.")
         for type_ in catalog.types:
             image(f"objects_{type_}.{ext}", renderer.gomo(type_))
+    elif paper:
+        parts.append(oal_text(catalog))
     else:
         parts.append("These are the objects I have, as JSON; each object's object_reference_id is its "
                      "\"id\" and its object_type is its \"class\":\n" + oal_text(catalog))
@@ -176,8 +234,11 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
     target_name = f"initial_state_1.{ext}"
     image(target_name, renderer.table(target.table, grid=grid if gridded else None))
     # 4. The task.
-    parts.append(task_text(method, names, target_name, grid, catalog.types, structured=structured))
-    return Prompt(method=method, parts=parts, episode=episode.id, context_answers=answers)
+    if paper:
+        parts.append(paper_task_text(method, names, target_name, structured=structured))
+    else:
+        parts.append(task_text(method, names, target_name, grid, catalog.types, structured=structured))
+    return Prompt(method=method, parts=parts, episode=episode.id, context_answers=answers, style=style)
 
 
 def context_answer(method: str, arrangement, catalog, grid: Grid | None) -> str:
@@ -191,7 +252,9 @@ def context_answer(method: str, arrangement, catalog, grid: Grid | None) -> str:
 
 def task_text(method: str, context_names: list[str], target_name: str, grid: Grid | None,
               types: list[str], structured: bool = False) -> str:
-    """The task paragraph: the paper's appendix prompt for the method's arrangement lifting.
+    """The task paragraph of the `clarified` style: the paper's appendix prompt for the method's arrangement lifting
+    (Unmarked or Grid Marked Arrangements) with cell naming, the object types, the coordinate convention and the
+    placement-order request added.
 
     With no context images the first sentence (about preference images) is replaced by one that does
     not refer to images that do not exist. With `structured` the answer-format sentences ask for the
@@ -230,6 +293,47 @@ def task_text(method: str, context_names: list[str], target_name: str, grid: Gri
              "the order I should place them. ")
     text += ("Include only this JSON object in your response." if structured
              else "Include only this list in your response.")
+    return text
+
+
+def paper_task_text(method: str, context_names: list[str], target_name: str, structured: bool = False) -> str:
+    """The task paragraph of the `paper` style: the appendix prompt of the method, verbatim (`PAPER_PROMPTS`).
+
+    - louma: the Objects as Language prompt, whole.
+    - mouma: the Unmarked Arrangements prompt, whole; mogma: the Grid Marked Arrangements prompt, whole.
+    - logma (no prompt of its own in the appendix): the Objects as Language prompt up to its question (objects as
+      language, the images referred to as "the first images" and "the final image"), then the Grid Marked
+      Arrangements prompt from "Please list all grid cells" to its end (cells and directions, the answer the
+      method's grid-marked arrangements ask for).
+
+    Substitutions, only where the appendix writes a placeholder or a file name:
+    - `final_state_K.jpg` / `final_state_N.jpg`: the context images' names joined by ", " (final_state_1.jpg,
+      final_state_2.jpg, ...); with no context image the placeholder is left as the appendix writes it (the
+      appendix has no zero-context prompt).
+    - `initial_state_1.jpg`: `target_name` (the same name unless the images are PNG: initial_state_1.png).
+    - `structured`: "Give your answer as a python list formatted as follows: [ITEM]." becomes "Give your answer as
+      a JSON object formatted as follows: {"objects": [ITEM]}." (ITEM in double quotes) and "Include only this list
+      in your response." becomes "Include only this JSON object in your response.": the JSON the schema of
+      `answers.answer_schema` forces; every other sentence is unchanged.
+    """
+    _check_method(method)
+    objects_as_language = method in ("louma", "logma")
+    gridded = method in ("logma", "mogma")
+    own = PAPER_PROMPTS["grid" if gridded else "unmarked"]
+    if objects_as_language:
+        oal = PAPER_PROMPTS["objects_as_language"]
+        text = oal[:oal.index(_QUESTION)] + own[own.index(_QUESTION):] if gridded else oal
+    else:
+        placeholder = "final_state_N.jpg" if gridded else "final_state_K.jpg"
+        text = own.replace(placeholder, ", ".join(context_names)) if context_names else own
+        text = text.replace("initial_state_1.jpg", target_name)
+    if structured:
+        start = text.index("Give your answer as a python list")
+        end = text.index("]. ", start) + len("]. ")
+        item = text[text.index("[{", start) + 1:end - len("]. ")]
+        text = text[:start] + _answer_format(item, True) + text[end:]
+        text = text.replace("Include only this list in your response.",
+                            "Include only this JSON object in your response.")
     return text
 
 

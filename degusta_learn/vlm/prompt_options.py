@@ -13,6 +13,9 @@ Used wherever a local VLM is prompted: fine-tuning examples (`finetune/data.py`,
   which objects the person used instead of reading their ids from the pictures (a recorded history a robot
   has; what the structured baselines `copy_nearest` and `consensus` are given). Off by default.
 
+The prompt's text style (`clarified` or the paper's verbatim `paper`, `task.prompt.PROMPT_STYLES`) is chosen when
+the prompt is built (`build_prompt(style=...)`, a predict config's `prompt_style`); `adapt_prompt` keeps it.
+
 Example:
     opts = PromptOptions(include=["context", "target"], compose=["context"])
     small = adapt_prompt(build_prompt("mogma", ds, episode, renderer, Grid(8, 8)), opts)
@@ -84,7 +87,8 @@ def adapt_prompt(prompt, options: PromptOptions):
         for g in GROUPS:
             if g in options.compose:
                 keep = _compose(keep, {g}, g)
-    return Prompt(method=prompt.method, parts=keep, episode=prompt.episode, context_answers=prompt.context_answers)
+    return Prompt(method=prompt.method, parts=keep, episode=prompt.episode, context_answers=prompt.context_answers,
+                  style=prompt.style)
 
 
 def _with_context_answers(parts: list, answers: dict[str, str]) -> list:
