@@ -8,18 +8,23 @@ need per episode (the n sampled answers in `diagnostics.responses`, the greedy o
 `diagnostics.greedy_response`), so every way is scored from the same answers here, without asking the model
 again.
 
-Run it on predictions of the validation participants (`--split val`: the last weights, `adapter/`, of runs without
-early stopping may be predicted there; docs/finetune.md, the leakage guard) to choose, by `--by` (default: the
-set-aware score, which no short answer games), then on the test episodes' predictions with `--only CHOSEN` to
-report the chosen way alone. Several files (one per training seed, the same episodes) add a row of each episode's
-mean over the seeds, which the paired tests against `population_mean` use (nan where no seed matched an object).
+It chooses on the validation participants only (`--split val`: the last weights, `adapter/`, of runs without
+early stopping may be predicted there; docs/finetune.md, the leakage guard), by `--by` (default: the set-aware
+score, which no short answer games), and `--samples` chooses n the same way. `--split test` is refused unless
+`--only` names the way already chosen: the test participants give the final number of a frozen choice, looked at
+once (docs/metrics.md, "Protocol: validation for choices, test once"). The usual final number is `degusta
+predict --set split=test` with the chosen `decoding.aggregation` and `degusta evaluate`, whose report names the
+split and the choices the predictions were made with; `--only` scores it here from the same stored answers. Several
+files (one per training seed, the same episodes) add a row of each episode's mean over the seeds, which the paired
+tests against `population_mean` use (nan where no seed matched an object).
 
 Usage:
     degusta predict --config configs/predict_hf_base_finetuned.yaml --set split=val \\
         --set model.adapter=RUN/adapter --set out=OUT/val_s0.jsonl              # one per seed
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split val OUT/val_s0.jsonl OUT/val_s1.jsonl
+    python benchmarks/choose_decoding.py ... --split val --samples 5 VAL_n9_s0.jsonl   # n = 5 from a run with n = 9
+    # once every choice is frozen, the chosen way alone on the test participants (one look):
     python benchmarks/choose_decoding.py --dataset data/naturalistic --split test --only steps TEST_s0.jsonl ...
-    python benchmarks/choose_decoding.py ... --samples 5 VAL_n9_s0.jsonl   # n = 5 from a run with n = 9
 """
 
 from __future__ import annotations
@@ -70,11 +75,25 @@ def decodings(prediction, catalog, grid, samples: int | None = None) -> dict[str
     }
 
 
+def refuse_choosing_on_test(split: str, only: str | None) -> None:
+    """Exit with one line when the run would choose (no `--only`) on participants that hold the test split."""
+    from degusta_learn.errors import DegustaError
+    from degusta_learn.training.protocol import refuse_test_split
+
+    if only is not None:  # scoring the way chosen on validation: the final number, not a choice
+        return
+    try:
+        refuse_test_split(split, "--split", "choosing a decoding")
+    except DegustaError as e:
+        raise SystemExit(f"error: {e}; choose with --split val, then score the chosen way with --only WAY") from None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("predictions", nargs="+", help="greedy_votes_pooled predictions, one file per training seed")
     ap.add_argument("--dataset", required=True)
-    ap.add_argument("--split", required=True, choices=["val", "test"])
+    ap.add_argument("--split", required=True, choices=["val", "test"],
+                    help="val: choose; test: only with --only, the final number of the way chosen on val")
     ap.add_argument("--context", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0, help="the participant split seed (the training run's)")
     ap.add_argument("--only", choices=WAYS, help="score this way alone (the one chosen on the validation participants)")
@@ -86,6 +105,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.samples is not None and args.samples < 1:
         ap.error(f"--samples {args.samples}: give at least 1")
+    refuse_choosing_on_test(args.split, args.only)
 
     from degusta_learn.methods import get_method
     from degusta_learn.metrics import paired_bootstrap, score_many
@@ -118,6 +138,8 @@ def main() -> None:
 
     print(f"{len(order)} {args.split} episodes (context {args.context}), {len(runs)} file(s); population_mean: "
           + ", ".join(f"{k} {np.nanmean(base[k]):.3f}" for k in METRICS if k != "n_pred"))
+    if args.split == "test":
+        print(f"test participants: the final number of {args.only}, chosen on the validation participants (one look)")
     print("\n| decoding | object accuracy | Kabsch RMSD (paper) | set RMSD | count error | objects / answer | "
           "Kabsch vs population_mean (p) | set RMSD vs population_mean (p) | per file: object acc. / Kabsch |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -54,7 +54,7 @@ def test_the_choice_is_made_on_the_set_score_not_on_short_answers(small_dataset_
     steps = next(line for line in out.splitlines() if line.startswith("| steps |"))
     assert steps.split(" | ")[5] == "1.00"  # one object an answer
     monkeypatch.setattr(sys, "argv", ["choose_decoding.py", str(path), "--dataset", str(small_dataset_dir),
-                                      "--split", "test"])
+                                      "--split", "test", "--only", "greedy"])
     with pytest.raises(SystemExit, match=r"lacks \d+ of the \d+ test episodes"):
         bench.main()
 

@@ -23,6 +23,8 @@ def test_oracle_from_folder_matches_in_memory_styles(sim_dir, tmp_path):
     preds = read_predictions(out, ds.catalog, {e.id: e for e in episodes})
     _, styles, _ = simulated_with_styles(0)
     mem = predict_oracle(ds, {s.participant: s for s in styles}, episodes)
+    for p in preds:  # what run_predict adds to every record (methods.predict.record_run): the run, not the oracle
+        assert p.diagnostics.pop("split") == "train+val+test" and p.diagnostics.pop("choices")["method"] == "oracle"
     assert [p.to_json() for p in preds] == [p.to_json() for p in mem]
     # noiseless: the same style on the same table gives the same arrangement, on any table
     style = styles[0]

@@ -174,13 +174,14 @@ def build_examples(cfg: FinetuneConfig, ds, grid):
     """(train LiftedExamples, val LiftedExamples) from the dataset's seeded participant split."""
     from degusta_learn.finetune.data import LiftedExamples
     from degusta_learn.scene import make_episodes
+    from degusta_learn.training.protocol import selection_episodes
 
     opts = cfg.data.prompt_options()
     train = [e for k in cfg.data.contexts for e in make_episodes(ds, k, "train", cfg.seed)]
     if cfg.data.max_train_episodes is not None and len(train) > cfg.data.max_train_episodes:
         train = random.Random(cfg.seed).sample(train, cfg.data.max_train_episodes)
-    val = [e for k in cfg.data.val_contexts for e in make_episodes(ds, k, "val", cfg.seed)] if cfg.data.val_episodes \
-        else []
+    # validation picks best_adapter/ and drives early stopping: the validation participants only (training.protocol)
+    val = selection_episodes(ds, cfg.data.val_contexts, cfg.seed) if cfg.data.val_episodes else []
     if len(val) > cfg.data.val_episodes:
         val = random.Random(cfg.seed + 1).sample(val, cfg.data.val_episodes)
     # training contexts drawn afresh each epoch, seeded by the training seed (the split stays the split seed's)

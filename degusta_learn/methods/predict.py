@@ -1,10 +1,18 @@
 """`degusta predict`: the keys every predict config has (`PredictConfig`), the episodes it names, and
 `run_predict`, which runs the method and writes predictions.jsonl atomically.
+
+Every prediction it writes records, in its `diagnostics`, the participants it was made on (`split`: the config's
+split, or for an episodes file the splits its participants fall in under the config's seed) and the choices it was
+made with (`choices`: method, a fingerprint of the resolved config, seed, episodes file, and the checkpoint, model,
+adapter and decoding keys the method's config has), so a report can say which split a number is on and what made it
+(docs/data.md, "Predictions files").
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -17,11 +25,14 @@ from degusta_learn.scene import (
     CONTEXT_LENGTHS,
     Dataset,
     Episode,
+    Prediction,
     load_dataset,
     make_episodes,
     read_episodes,
+    split_participants,
     write_predictions,
 )
+from degusta_learn.scene.predictions import CHOICES_KEY, EPISODES_FILE, SPLIT_KEY, split_label
 
 
 @dataclass
@@ -66,6 +77,52 @@ def resolve_episodes(cfg: PredictConfig, ds: Dataset) -> list[Episode]:
                 "or unset episodes")
         return episodes
     return make_episodes(ds, cfg.context, cfg.split, cfg.seed)
+
+
+CHOICE_KEYS = ("checkpoint", "backend.name", "model.name", "model.adapter", "prompt_style", "decoding.constrained",
+               "decoding.n", "decoding.temperature", "decoding.aggregation")
+"""Config keys a prediction's `choices` repeats where the method's config has them (as `--set` would name them):
+which weights answered and how their answers were decoded and combined."""
+
+
+def run_split(cfg: PredictConfig, ds: Dataset, episodes: list[Episode]) -> str:
+    """The participants a run predicts, as `diagnostics.split` says it: `cfg.split` for episodes built from it;
+    for an episodes file, the splits (under `cfg.seed`) its participants fall in, e.g. "test" or "val+test", or
+    "episodes file" when the dataset has too few participants to split."""
+    if not cfg.episodes:
+        return cfg.split
+    try:
+        split = split_participants(ds.participants, cfg.seed)
+    except DegustaError:  # fewer than 3 participants: no split places them
+        return EPISODES_FILE
+    mine = {e.participant for e in episodes}
+    return split_label(name for name, ids in split.items() if mine.intersection(ids))
+
+
+_ABSENT = object()
+
+
+def run_choices(cfg: PredictConfig) -> dict[str, Any]:
+    """What a prediction was made with: method, `config_sha256` (of the resolved config without `out`: two runs
+    with the same value ran the same config), seed, episodes file, and every `CHOICE_KEYS` key the config has."""
+    values = dataclasses.asdict(cfg)
+    resolved = json.dumps({k: v for k, v in values.items() if k != "out"}, sort_keys=True, default=str)
+    choices = {"method": cfg.method, "config_sha256": hashlib.sha256(resolved.encode()).hexdigest(),
+               "seed": cfg.seed, "episodes": cfg.episodes}
+    for key in CHOICE_KEYS:
+        node: Any = values
+        for part in key.split("."):
+            node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+        if node is not _ABSENT:
+            choices[key] = node if node is None or isinstance(node, (str, int, float, bool)) else str(node)
+    return choices
+
+
+def record_run(predictions: list[Prediction], cfg: PredictConfig, ds: Dataset, episodes: list[Episode]) -> None:
+    """Add `split` and `choices` to every prediction's diagnostics (run_split, run_choices)."""
+    split, choices = run_split(cfg, ds, episodes), run_choices(cfg)
+    for p in predictions:
+        p.diagnostics = {**(p.diagnostics or {}), SPLIT_KEY: split, CHOICES_KEY: choices}
 
 
 _NOT_PATHS = ("out", "method", "split", "dataset")
@@ -128,6 +185,7 @@ def run_predict(path: str | Path | None, overrides: list[str] | None = None, dry
         return None
     from degusta_learn.task.aggregate import failure_summary
 
+    record_run(predictions, cfg, ds, episodes)
     out = Path(cfg.out)
     write_predictions(out, predictions)
     log(f"{cfg.method}: {failure_summary(predictions)}")

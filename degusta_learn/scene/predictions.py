@@ -1,7 +1,15 @@
-"""predictions.jsonl: one line per episode, the same for every method (DESIGN.md section 9)."""
+"""predictions.jsonl: one line per episode, the same for every method (DESIGN.md section 9).
+
+`degusta predict` records in every prediction's `diagnostics` which participants it was made on (`split`) and the
+choices it was made with (`choices`: method, config fingerprint, checkpoint, adapter, decoding); docs/data.md,
+"Predictions files". `recorded_split` reads the split back for reports; a file written before degusta recorded it
+reads as "not recorded".
+"""
 
 from __future__ import annotations
 
+import re
+from collections.abc import Iterable
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
@@ -45,3 +53,51 @@ def read_predictions(path: str | Path, catalog: Catalog, episodes: dict[str, Epi
     if not out:
         raise DegustaError(f"{path}: no predictions")
     return out
+
+
+SPLIT_KEY = "split"
+"""The `diagnostics` key of the participants a prediction was made on."""
+
+CHOICES_KEY = "choices"
+"""The `diagnostics` key of the choices a prediction was made with (method, config fingerprint, ...)."""
+
+EPISODES_FILE = "episodes file"
+"""The split of predictions on an episodes file whose participants no split of the dataset places (too few
+participants to split)."""
+
+NOT_RECORDED = "not recorded"
+"""What `recorded_split` says of a file written before degusta recorded the split."""
+
+_SPLIT_NAMES = ("train", "val", "test")
+_LABEL = re.compile(r"all|episodes file|(?:train|val|test)(?:\+(?:train|val|test))*")
+
+
+def split_label(splits: Iterable[str]) -> str:
+    """The `diagnostics.split` of predictions on participants of `splits` (any of train, val, test): one name, or
+    several joined by '+' in split order ("val+test"); "episodes file" when none."""
+    given = set(splits)
+    return "+".join(s for s in _SPLIT_NAMES if s in given) or EPISODES_FILE
+
+
+def recorded_split(predictions: Iterable) -> str:
+    """The split a set of predictions records: its one `diagnostics.split` (train, val, test, all, a '+'-joined
+    mix, "episodes file"), "mixed: a, b" when its records disagree, "not recorded" for a file written before
+    degusta recorded it. A value that is no split label counts as not recorded (the field is never an error)."""
+    labels = set()
+    for p in predictions:
+        value = (p.diagnostics or {}).get(SPLIT_KEY) if isinstance(p.diagnostics, dict) else None
+        labels.add(value if isinstance(value, str) and _LABEL.fullmatch(value) else NOT_RECORDED)
+    if len(labels) == 1:
+        return labels.pop()
+    return "mixed: " + ", ".join(sorted(labels, key=_split_order)) if labels else NOT_RECORDED
+
+
+def _split_order(label: str) -> tuple:
+    """Sort key of split labels: train, val, test first (in that order), then all, episodes file, not recorded."""
+    order = (*_SPLIT_NAMES, "all", EPISODES_FILE, NOT_RECORDED)
+    return tuple(order.index(part) for part in label.split("+"))
+
+
+def holds_test(label: str) -> bool:
+    """Whether a `recorded_split` label says that some prediction is on a test participant."""
+    return bool(re.search(r"\b(test|all)\b", label))

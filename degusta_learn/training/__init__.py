@@ -50,7 +50,8 @@ Usage:
 
 Modules: config.py (`TrainerConfig`, `check_trainer`), run_dir.py (`training_run`, `prepare_run_dir`), fit.py
 (`build_trainer`, `fit`), checkpoint_io.py (atomic checkpoints), loggers.py (`build_loggers`, `validation_curve`),
-hardware.py (ranks, seeding, CPU threads and kernels, precision).
+hardware.py (ranks, seeding, CPU threads and kernels, precision), protocol.py (validation chooses, never test:
+`selection_episodes`, the monitor check, `refuse_test_split`).
 """
 
 from degusta_learn.training.checkpoint_io import atomic_checkpoint_io

@@ -13,6 +13,7 @@ from typing import Any, Literal
 
 from degusta_learn.config import bounded, check_choices, seed_field
 from degusta_learn.errors import DegustaError, MachineMismatch
+from degusta_learn.training.protocol import check_monitor
 
 ACCELERATORS = ("auto", "cpu", "gpu", "cuda", "mps", "tpu")
 
@@ -74,7 +75,8 @@ class TrainerConfig:
     check_val_every_n_epoch: int = bounded(1, 1, 1_000_000)
     """Validate every this many epochs."""
     monitor: str | None = "val/rmsd"
-    """Metric that picks best.ckpt (null: only last.ckpt)."""
+    """Validation metric that picks best.ckpt and that early stopping watches (null: only last.ckpt); a test metric
+    (`test/...`) is refused: choices are made on the validation participants (training/protocol.py)."""
     monitor_mode: Literal["min", "max"] = "min"
     """"min" or "max" for `monitor`."""
     early_stopping_patience: int | None = bounded(None, 1, 1_000_000)
@@ -121,6 +123,7 @@ class TrainerConfig:
             raise DegustaError(f"trainer.val_check_interval: expected a number of batches >= 1, got {vci}")
         if self.monitor is not None and not self.monitor.strip():
             raise DegustaError("trainer.monitor: expected a logged metric name (or null), got ''")
+        check_monitor(self.monitor)
         if self.early_stopping_patience is not None and self.monitor is None:
             raise DegustaError("trainer.early_stopping_patience: early stopping watches trainer.monitor, which is "
                                "null; name a validation metric in trainer.monitor or set the patience to null")

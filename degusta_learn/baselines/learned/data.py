@@ -16,7 +16,8 @@ task intact:
   their target, and teaches it to take the objects from the context instead.
 
 Validation episodes are the val participants' episodes at each of `data.val_contexts` (exactly as
-`make_episodes` builds them for `degusta predict`), unaugmented.
+`make_episodes` builds them for `degusta predict`), unaugmented: `training.protocol.selection_episodes`, so the
+validation that picks best.ckpt never sees a test participant.
 
 Samples are made by `encode(context, target_table_id, target)` (the slot encoding, slots.py) and batched
 by `slots.collate_slots`.
@@ -40,8 +41,9 @@ from degusta_learn.baselines.learned.features import onto_surface
 from degusta_learn.baselines.learned.slots import collate_slots
 from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
-from degusta_learn.scene import CONTEXT_LENGTHS, Arrangement, Dataset, Episode, Placement, make_episodes
+from degusta_learn.scene import CONTEXT_LENGTHS, Arrangement, Dataset, Episode, Placement
 from degusta_learn.scene.episodes import split_participants
+from degusta_learn.training.protocol import selection_episodes
 
 
 @dataclass
@@ -184,7 +186,7 @@ class ArrangementDataModule(L.LightningDataModule):
         self.cfg, self.ds = cfg, ds
         split = split_of(ds, seed, where)
         self.train_participants = split["train"]
-        self.val_episodes = [e for k in cfg.val_contexts for e in make_episodes(ds, k, "val", seed)]
+        self.val_episodes = selection_episodes(ds, cfg.val_contexts, seed)  # what best.ckpt is chosen on
         self.train_set = TrainEpisodes(ds, self.train_participants, cfg, encode)
         self.val_set = ValEpisodes(ds, self.val_episodes, encode)
         if not len(self.train_set):
