@@ -135,17 +135,27 @@ def cmd_train(args) -> str | Result:
 
 def cmd_evaluate(args) -> str:
     from degusta_learn.evaluate import evaluate_files
+    from degusta_learn.evaluate.compare import RESAMPLE_CLUSTER
 
     out = evaluate_files(args.dataset, args.predictions, args.out, episodes=args.episodes,
-                         n_bootstrap=args.bootstrap, seed=args.seed)
-    return f"wrote metrics.json, per_episode.csv and report.md to {out}"
+                         n_bootstrap=args.bootstrap, seed=args.seed, matching=args.matching,
+                         cluster=RESAMPLE_CLUSTER[args.resample])
+    from degusta_learn.evaluate.console import summary_text
+    from degusta_learn.files.jsonio import read_json
+
+    table = summary_text(read_json(out / "metrics.json"))
+    return f"{table}\nwrote metrics.json, per_episode.csv and report.md to {out}"
 
 
 def cmd_compare(args) -> Result:
     from degusta_learn.evaluate.compare import run_compare
 
+    from degusta_learn.evaluate.console import summary_text
+    from degusta_learn.files.jsonio import read_json
+
     result = run_compare(args.config, args.set)
-    return Result(f"wrote the comparison report to {result.out / 'report.md'} (and report.html)",
+    table = summary_text(read_json(result.out / "metrics.json").get("methods") or {})
+    return Result(f"{table}\nwrote the comparison report to {result.out / 'report.md'} (and report.html)",
                   failed=result.failure_summary())
 
 
@@ -323,6 +333,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--bootstrap", type=_int_in(1, 1_000_000), default=1000, help="bootstrap resamples for the intervals")
     p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--resample", default="participants", choices=["participants", "episodes"],
+                   help="what the bootstrap intervals resample: participants, each with all of its episodes (the "
+                        "default), or episodes one by one")
+    p.add_argument("--matching", default="hungarian", choices=["hungarian", "paper"],  # metrics.matching.MATCHINGS
+                   help="how predicted objects are paired with true ones: hungarian (least total Hamming distance, "
+                   "the default) or paper (the paper's greedy rule: each true object in placement order takes "
+                   "its most similar remaining prediction)")
     p.set_defaults(func=cmd_evaluate)
 
     p = verbs.add_parser("compare", help="several methods on the same episodes -> one report folder")

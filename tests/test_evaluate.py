@@ -6,7 +6,7 @@ import json
 import pytest
 
 from degusta_learn.cli import main
-from degusta_learn.evaluate.summary import DEGENERATE_MARK, rank_methods
+from degusta_learn.evaluate.summary import rank_methods
 from degusta_learn.metrics import SET_PENALTY
 from degusta_learn.scene import (
     Placement,
@@ -95,13 +95,19 @@ def test_one_object_predictions_are_flagged(small_dataset_dir, tmp_path):
     metrics = summary["lonely"]
     assert metrics["rmsd"]["mean"] == pytest.approx(0.0) and metrics["few_objects_rate"] == 1.0
     assert metrics["degenerate"] is True and metrics["frac_le2_matched"] == 1.0
-    assert summary["shifted"]["degenerate"] is False
+    assert metrics["degenerate_reasons"] == ["too few"] and metrics["degenerate_fractions"]["too few"] == 1.0
+    assert summary["shifted"]["degenerate"] is False and summary["shifted"]["degenerate_reasons"] == []
+    # Count bias: one object of the ground truth's n on every episode, so exactly mean(1 - n_gt).
+    rows = [r for r in csv.DictReader((tmp_path / "ev" / "per_episode.csv").open()) if r["method"] == "lonely"]
+    assert metrics["count_bias"]["mean"] == pytest.approx(sum(1 - int(r["n_gt"]) for r in rows) / len(rows), abs=1e-6)
+    assert summary["shifted"]["count_bias"]["mean"] == 0.0
     # 3-5 ground-truth objects, one predicted: at least sqrt(2/3) * c, never ~0.
     assert metrics["set_rmsd"]["mean"] >= (2 / 3) ** 0.5 * SET_PENALTY - 1e-9
     assert list(summary) == ["shifted", "lonely"]  # metrics.json in rank order, though lonely was given first
     report = (tmp_path / "ev" / "report.md").read_text()
     assert "Warning: lonely matches at most 2 objects in 100%" in report
-    assert "| 1 | shifted |" in report and f"| 2 | lonely{DEGENERATE_MARK} |" in report
+    assert "| 1 | shifted |" in report and "| 2 | lonely (degenerate: too few objects) |" in report
+    assert "(degenerate: too few objects): most of its scored predictions have at most 0.5 x" in report
     assert "ranked by mean set RMSD" in report and "paper's metrics" in report
 
 

@@ -53,6 +53,7 @@ from degusta_learn.files.jsonio import atomic_write_json, read_json
 from degusta_learn.files.locks import hold
 from degusta_learn.metrics import acceptability_curve
 from degusta_learn.metrics.bootstrap import MAX_RESAMPLES
+from degusta_learn.metrics.matching import check_matching
 from degusta_learn.prompting.backends.base import backend_class
 from degusta_learn.render.lifting import MAX_IMAGE_SIZE, MIN_IMAGE_SIZE
 from degusta_learn.scene import (
@@ -146,10 +147,18 @@ class CompareConfig:
     render_size: int = bounded(256, MIN_IMAGE_SIZE, MAX_IMAGE_SIZE)
     """Pixel size the qualitative panels' scenes are rendered at (64 .. 4096)."""
     title: str = "Comparison report"
+    matching: Literal["hungarian", "paper"] = "hungarian"
+    """How predicted objects are paired with true ones before scoring: "hungarian" (least total Hamming distance)
+    or "paper" (the paper's greedy rule); docs/metrics.md, "Matching: ours and the paper's"."""
+    resample: Literal["participants", "episodes"] = "participants"
+    """What the bootstrap intervals and paired tests resample: "participants" (each with all of its episodes: episodes
+    of one person are not independent) or "episodes" (one by one, the older per-episode intervals); every report
+    says which."""
 
     RENAMED: ClassVar[dict[str, str]] = {"image_size": "render_size"}
 
     def __post_init__(self):
+        check_matching(self.matching)  # the loader checks the Literal; a config built in Python is checked here
         if not self.methods:
             raise DegustaError("methods: expected at least one method")
         names = [m.name for m in self.methods]
@@ -440,10 +449,15 @@ def _output_names(cfg: CompareConfig, pred_dir: Path) -> None:
                                    f"predictions/{name}; rename one of them")
 
 
-def paired_table(rows: list[EpisodeRow], methods: list[str], n_bootstrap: int, seed: int) -> list[dict]:
-    """Paired differences (b - a) of every pair of methods on their shared episodes, participants resampled
+RESAMPLE_CLUSTER = {"participants": "participant", "episodes": None}
+"""`resample` (a config's or `degusta evaluate --resample`'s word) -> the `cluster` of summary.summarize."""
+
+
+def paired_table(rows: list[EpisodeRow], methods: list[str], n_bootstrap: int, seed: int,
+                 resample: str = "participants") -> list[dict]:
+    """Paired differences (b - a) of every pair of methods on their shared episodes, resampled as `resample` says
     (`summary.paired_comparisons`; pass the methods ranked: a is then the better-ranked one)."""
-    return paired_comparisons(rows, methods, n_bootstrap, seed, cluster="participant")
+    return paired_comparisons(rows, methods, n_bootstrap, seed, cluster=RESAMPLE_CLUSTER[resample])
 
 
 def _refuse_replacing_inputs(cfg: CompareConfig, out: Path, pred_dir: Path, config_path) -> None:
@@ -495,14 +509,17 @@ def compare(cfg: CompareConfig, log=print, config_path: str | Path | None = None
         if not predictions:
             reasons = "; ".join(f"{m}: {' '.join(msg.split())}" for m, msg in failures.items())
             raise DegustaError(f"every method failed, so no report was written ({reasons})")
-        rows = [r for preds in predictions.values() for r in score_predictions(ds, preds, ep_map)]
-        summary = summarize(rows, cfg.n_bootstrap, cfg.seed)
+        rows = [r for preds in predictions.values()
+                for r in score_predictions(ds, preds, ep_map, matching=cfg.matching)]
+        summary = summarize(rows, cfg.n_bootstrap, cfg.seed, cluster=RESAMPLE_CLUSTER[cfg.resample])
+        for s in summary.values():
+            s["matching"] = cfg.matching  # what every score was taken on
         for name, spent in costs.items():  # what each method's own ledgers say it cost (a paid method keeps one)
             if spent is not None and name in summary:
                 summary[name].update({k: spent[k] for k in ("cost_usd_total", "cost_usd_per_episode", "tokens_per_episode",
                                                             "requests")}, cost=spent)
         methods = rank_methods(summary)  # best first; summarize already returns this order
-        paired = paired_table(rows, methods, cfg.n_bootstrap, cfg.seed)
+        paired = paired_table(rows, methods, cfg.n_bootstrap, cfg.seed, cfg.resample)
         curve = acceptability_curve(ds.ratings)
         with write_folder(out, COMPARISON, keep=("predictions",)) as tmp:
             for name, preds in predictions.items():

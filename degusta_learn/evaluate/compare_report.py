@@ -27,6 +27,8 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.plots import plot_acceptability, plot_context, plot_metric_bars
 from degusta_learn.evaluate.report import (
     METRIC_NOTES,
+    TEST_REMINDER,
+    VAL_REMINDER,
     acceptability_lines,
     answer_table,
     context_table,
@@ -39,7 +41,10 @@ from degusta_learn.evaluate.report import (
 )
 from degusta_learn.evaluate.summary import GRAMMAR_MARK, paired_comparisons, ranked, resampling_of
 from degusta_learn.files.atomic import atomic_write_text
+from degusta_learn.metrics import ACCEPTABILITY_ERROR
 from degusta_learn.files.jsonio import atomic_write_json
+from degusta_learn.metrics.matching import matching_line
+from degusta_learn.scene.predictions import holds_test, recorded_split
 from degusta_learn.textsafe import MESSAGE_LIMIT, html_text, markdown_to_html, md_code, md_text
 
 _HTML = """<!doctype html><html><head><meta charset="utf-8"><title>{title}</title><style>
@@ -104,18 +109,15 @@ def consistent_paired(cfg, rows, summary: dict[str, dict], paired: list[dict]) -
                               cluster=None if unit == "episode" else "participant")
 
 
-def _paper_table(summary: dict[str, dict], curve: dict[float, float]) -> list[str]:
-    """The paper's Table 1 for every method: acceptable@t beside the rating-based acceptance."""
-    ts = [f"{t:.2f}" for t in sorted(curve)]
-    lines = ["| RMSD threshold | " + " | ".join(ts) + " |", "|---|" + "---:|" * len(ts),
-             "| people: % of ratings with drop < 0.2 | " + " | ".join(f"{curve[float(t)]:.3f}" for t in ts) + " |"]
-    for method, s in summary.items():
-        lines.append(f"| {md_label(method, s)}: % of predictions with RMSD <= t | "
-                     + " | ".join(f"{s['acceptable_at'].get(t, float('nan')):.3f}" for t in ts) + " |")
-    return lines
+COST_KEYS = ("tokens_per_episode", "cost_usd_per_episode", "cost_usd_total", "requests")
+"""What a paid (or token-counting) method adds to its summary (compare.method_cost): the cost table's columns."""
 
 
 def _cost_lines(summary: dict[str, dict]) -> list[str]:
+    """The failures and cost table; [] when no method failed anything and none reports tokens, cost or requests
+    (a table of zeros and dashes says nothing)."""
+    if not any(s.get("failure_rate") or any(s.get(k) is not None for k in COST_KEYS) for s in summary.values()):
+        return []
     lines = ["| method | failure rate | tokens / episode | USD / episode | USD total | requests |",
              "|---|---:|---:|---:|---:|---:|"]  # cost and requests: a paid method's ledgers (compare.method_cost)
     for method, s in summary.items():
@@ -135,7 +137,8 @@ def _grid_floor(ds) -> float | None:
 
 
 def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
-    """Side-by-side images: the top-ranked method's best and worst episode (by set RMSD), then random ones."""
+    """Side-by-side images: the top-ranked method's best and worst episode (by set RMSD), then random ones, each
+    with the placement steps and the scores' own matching (`cfg.matching`) drawn on it."""
     from degusta_learn.evaluate.qualitative import render_side_by_side
     from degusta_learn.render.lifting import Renderer
 
@@ -157,7 +160,10 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
         chosen.append(("random", episodes[int(i)]))
     renderer = Renderer.for_dataset(ds, size=cfg.render_size)
     by = {(r.method, r.episode): r for r in rows}
-    lines = []
+    lines = ["Numbers on the objects: the placement step. On a prediction, j→g is its step j and the step g of the "
+             f"true object the scores matched it to (matching: {cfg.matching}), green where it is the same object "
+             "(what object accuracy counts), orange where it is another; grey j× was not matched; a red ring marks a "
+             "true object left unmatched.", ""] if chosen else []
     for n, (why, eid) in enumerate(chosen):
         panels = {}
         for method, preds in predictions.items():
@@ -165,10 +171,10 @@ def _qualitative(cfg, ds, rows, predictions, summary, out: Path) -> list[str]:
             r = by[(method, eid)]
             score = "failed" if r.failed else f"set {r.set_rmsd:.3f}, RMSD {r.rmsd:.3f}, acc {r.object_accuracy:.2f}"
             shown = method + (GRAMMAR_MARK if summary[method].get("constrained") else "")
-            panels[shown + (" [degenerate]" if summary[method].get("degenerate") else "")] = (pred.placements, score)
+            panels[shown + (" [degenerate]" if summary[method].get("degenerate") else "")] = (pred, score)
         first = next(p for p in predictions[ref] if p.episode == eid)
         name = f"qualitative/{n:02d}.png"
-        render_side_by_side(ds, renderer, first.participant, first.target, panels, out / name)
+        render_side_by_side(ds, renderer, first.participant, first.target, panels, out / name, matching=cfg.matching)
         lines += [f"**{why}**: episode {md_code(eid)}", "", f"![episode {n + 1}]({name})", ""]
     return lines
 
@@ -180,18 +186,27 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
     predictions = {m: predictions[m] for m in summary if m in predictions}  # rank order
     paired = consistent_paired(cfg, rows, summary, paired)
     write_per_episode_csv(out / "per_episode.csv", rows)
-    atomic_write_json(out / "metrics.json", {"dataset": ds.label, "n_episodes": len(episodes), "methods": summary,
+    # split: the comparison's own, or for an episodes file what its predictions record (scene.predictions)
+    split = cfg.split if not cfg.episodes else recorded_split(p for preds in predictions.values() for p in preds)
+    atomic_write_json(out / "metrics.json", {"dataset": ds.label, "n_episodes": len(episodes), "split": split,
+                                             "methods": summary,
                                              "ranking": list(summary), "ranked_by": "set_rmsd (degenerate last)",
+                                             "matching": cfg.matching,
                                              "paired": paired, "failed_methods": failures,
                                              "rating_acceptance": {f"{t:.2f}": v for t, v in curve.items()}})
     floor = _grid_floor(ds)
     plots = out / "plots"
     unit = resampling_of(summary).get("unit", "episode")
     lines = [f"# {md_text(cfg.title)}", "",
-             f"Dataset: **{md_text(ds.label)}**. Episodes: {len(episodes)} ({cfg.split} participants). "
+             f"Dataset: **{md_text(ds.label)}**. Episodes: {len(episodes)} ({md_text(split)} participants). "
              f"Intervals are 95% bootstrap intervals over {unit}s.", ""]
     if ds.synthetic:
         lines += ["> SYNTHETIC data generated by degusta_learn: these are not the paper's human-study numbers.", ""]
+    if holds_test(split):
+        lines += [TEST_REMINDER, ""]
+    elif split == "val":
+        lines += [VAL_REMINDER, ""]
+    lines += [matching_line(cfg.matching), ""]
     if failures:
         lines += ["## Methods that failed", ""] + [f"- **{md_text(m)}**: {md_text(msg, MESSAGE_LIMIT)}"
                                                    for m, msg in failures.items()] + [""]
@@ -199,17 +214,18 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         log("[compare] plotting")
         plot_metric_bars(summary, plots / "metrics.png", floor)
         shown = {m: m + GRAMMAR_MARK if s.get("constrained") else m for m, s in summary.items()}  # "+ grammar" rows
-        rmsds = {shown[m]: np.array([r.rmsd for r in rows if r.method == m and math.isfinite(r.rmsd)]) for m in summary}
-        plot_acceptability(curve, rmsds, plots / "acceptability.png",
+        # like for like, as the tables: every episode counts (a failed one scores c, above every threshold reported)
+        errors = {shown[m]: np.array([getattr(r, ACCEPTABILITY_ERROR) for r in rows if r.method == m], dtype=float)
+                  for m in summary}
+        plot_acceptability(curve, errors, plots / "acceptability.png",
                            {shown[m] for m, s in summary.items() if s.get("degenerate")})
         has_ctx = plot_context(summary, plots / "context.png", floor) is not None
         lines += ["## Results", "", *method_table(summary), "", intervals_line(summary), "",
                   *few_object_warnings(summary), "![metrics](plots/metrics.png)", ""]
         lines += [*plan_table(summary), "", intervals_line(summary), ""]
-        # the source sentence of evaluate's acceptability section, then one table: the people's row and every method's
         # (evaluate's table of the people's row alone would repeat that row)
-        lines += ["## Acceptability (the paper's Table 1)", "", acceptability_lines(curve, ds.ratings is not None)[0],
-                  "", *_paper_table(summary, curve), "", "![acceptability](plots/acceptability.png)", ""]
+        lines += ["## Acceptability (the paper's Table 1)", "", *acceptability_lines(curve, ds.ratings is not None, summary),
+                  "", "![acceptability](plots/acceptability.png)", ""]
         ctx = context_table(summary)
         if ctx:
             lines += ["## Set RMSD, object accuracy and Kabsch RMSD by context length (the paper's Table 2, "
@@ -219,7 +235,9 @@ def write_compare_report(cfg, ds, episodes, rows, summary, paired, failures, pre
         if floor is not None:
             lines += [f"Grid quantization floor (8 x 8 grid, position -> cells -> position): RMSD {floor:.4f}. "
                       "No grid-answering method can be more precise than this.", ""]
-        lines += ["## Failures and cost", "", *_cost_lines(summary), ""]
+        costs = _cost_lines(summary)
+        if costs:
+            lines += ["## Failures and cost", "", *costs, ""]
         answers = answer_table(summary)
         if answers:
             lines += [*answers, ""]

@@ -7,9 +7,10 @@
   dashed line on the RMSD panels where it is known.
 
 Methods appear in rank order (bars left to right, legends top to bottom: summary.rank_methods). A
-degenerate method (most predictions match <= 2 objects) is drawn grey and hatched (bars) or dotted
-(lines), and its label carries summary.DEGENERATE_MARK; a method decoded inside the answer grammar carries
-summary.GRAMMAR_MARK. Method names pass through textsafe.plot_text (one line, `$` escaped so that no
+degenerate method (its answers take a shortcut: too few objects, too many, a constant answer) is drawn
+grey and hatched (bars) or dotted (lines), and its label carries its reasons (summary.degenerate_mark; the
+acceptability legend, given only names, the plain summary.DEGENERATE_MARK); a method decoded inside the
+answer grammar carries summary.GRAMMAR_MARK. Method names pass through textsafe.plot_text (one line, `$` escaped so that no
 label is parsed as mathtext, a leading `_` kept visible): any name draws.
 """
 
@@ -23,7 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, ranked  # noqa: E402
+from degusta_learn.evaluate.summary import DEGENERATE_MARK, GRAMMAR_MARK, degenerate_mark, ranked  # noqa: E402
 from degusta_learn.files.atomic import atomic_open  # noqa: E402
 from degusta_learn.scene import CONTEXT_LENGTHS  # noqa: E402
 from degusta_learn.textsafe import plot_text  # noqa: E402
@@ -49,6 +50,8 @@ def _line_style(degenerate: bool) -> dict:
 def _err(stat: dict) -> tuple[float, float, float]:
     if not stat or stat.get("mean") is None:
         return np.nan, 0.0, 0.0
+    if stat.get("ci_low") is None or stat.get("ci_high") is None:  # no interval (one participant): no error bar
+        return stat["mean"], 0.0, 0.0
     return stat["mean"], stat["mean"] - stat["ci_low"], stat["ci_high"] - stat["mean"]
 
 
@@ -57,8 +60,8 @@ def plot_metric_bars(summary: dict[str, dict], path: Path, rmsd_floor: float | N
     summary = ranked(summary)
     methods = list(summary)
     degenerate = [bool(summary[m].get("degenerate")) for m in methods]
-    ticks = [plot_text(m) + (GRAMMAR_MARK if summary[m].get("constrained") else "") + ("\n(degenerate)" if d else "")
-             for m, d in zip(methods, degenerate)]
+    ticks = [plot_text(m) + (GRAMMAR_MARK if summary[m].get("constrained") else "")
+             + ("\n" + degenerate_mark(summary[m]).strip() if d else "") for m, d in zip(methods, degenerate)]
     fig, axes = plt.subplots(1, 3, figsize=(max(9, 1.5 * len(methods) + 4), 3.9))
     for ax, metric, title in ((axes[0], "set_rmsd", "set RMSD, ranks the methods (lower is better)"),
                               (axes[1], "rmsd", "Kabsch RMSD, paper (lower is better)"),
@@ -82,11 +85,15 @@ def plot_metric_bars(summary: dict[str, dict], path: Path, rmsd_floor: float | N
 
 
 def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], path: Path,
-                       degenerate: set[str] | frozenset[str] = frozenset()) -> Path:
-    """People's acceptance curve and each method's Kabsch RMSD CDF (legend in the order of `rmsds`).
+                       degenerate: set[str] | frozenset[str] = frozenset(),
+                       error: str = "unregistered set RMSD") -> Path:
+    """People's acceptance curve and, for each method, the fraction of its episodes whose `error` is <= t (legend
+    in the order of `rmsds`; a nan error, a failed prediction, counts as above every t, as in the tables).
 
-    A method in `degenerate` is drawn dotted and labelled with DEGENERATE_MARK: its Kabsch
-    RMSD is ~0 by construction, so its curve says nothing about quality.
+    `rmsds` holds each method's per-episode error: by default the like-for-like one (metrics.ACCEPTABILITY_ERROR,
+    the unregistered set RMSD, the kind of error the ratings were collected with); the paper's variant passes
+    Kabsch RMSDs and error="Kabsch RMSD (paper)". A method in `degenerate` is drawn dotted and labelled with
+    DEGENERATE_MARK: its curve says nothing about quality.
     """
     fig, ax = plt.subplots(figsize=(9.4, 3.8))
     ts = sorted(curve)
@@ -97,11 +104,11 @@ def plot_acceptability(curve: dict[float, float], rmsds: dict[str, np.ndarray], 
         if len(v):
             mark = DEGENERATE_MARK if method in degenerate else ""
             ax.plot(grid, [(v <= g).sum() / len(v) for g in grid], **({"lw": 1.3} | _line_style(bool(mark))),
-                    label=f"{plot_text(method)}{mark}: RMSD <= t")
-    ax.set_xlabel("RMSD threshold t (normalized image units)")
+                    label=f"{plot_text(method)}{mark}: error <= t")
+    ax.set_xlabel("error threshold t (normalized image units; people: the jitter's unregistered RMSD)")
     ax.set_ylabel("fraction")
     ax.set_ylim(0, 1.02)
-    ax.set_title("Acceptability (paper): people's tolerance vs each method's Kabsch RMSD\n"
+    ax.set_title(f"Acceptability: people's tolerance of a jittered scene vs each method's {error}\n"
                  "legend: methods ranked by set RMSD, best first", fontsize=9)
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the axes: hides no curve
     fig.tight_layout()
@@ -119,7 +126,7 @@ def plot_context(summary: dict[str, dict], path: Path, rmsd_floor: float | None 
             ys = [(by[k].get(metric) or {}).get("mean") for k in ks]
             ax.plot([int(k) for k in ks], [np.nan if y is None else y for y in ys], marker="o",
                     label=plot_text(method) + (GRAMMAR_MARK if s.get("constrained") else "")
-                    + (DEGENERATE_MARK if s.get("degenerate") else ""),
+                    + degenerate_mark(s),
                     **_line_style(bool(s.get("degenerate"))))
     axes[0].set_title("set RMSD vs context length", fontsize=10)
     axes[1].set_title("object accuracy (paper) vs context length", fontsize=10)

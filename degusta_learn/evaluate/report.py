@@ -3,7 +3,9 @@
 The report names the dataset (and says SYNTHETIC where it is), states how each metric is computed in
 one line, and warns that Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0):
 read it beside the set RMSD, the count error and the unregistered RMSD. Methods are listed best first
-by mean set RMSD (summary.rank_methods); a degenerate method is marked and listed after all others.
+by mean set RMSD (summary.rank_methods); a degenerate method is marked with its reasons and listed after all
+others. The main table shows the count bias (predicted minus true objects) beside the count error, and a line
+under it names the paper's columns a shortcut flatters (SHORTCUT_NOTE).
 A second table (`plan_table`) shows the rest of the task plan: placement order, rotation, and physical
 plausibility (off the table, overlapping footprints) with the ground truth's own rates as the reference.
 Under the tables one line says what the intervals resampled (participants by default, or episodes).
@@ -20,9 +22,9 @@ from pathlib import Path
 
 from degusta_learn.evaluate.scoring import CSV_COLUMNS, NEEDS, EpisodeRow
 from degusta_learn.evaluate.summary import (
-    DEGENERATE_MARK,
     GRAMMAR_MARK,
     RANKING_NOTE,
+    REASON_LABELS,
     label,
     ranked,
     resampling_line,
@@ -30,16 +32,38 @@ from degusta_learn.evaluate.summary import (
 )
 from degusta_learn.files.atomic import atomic_open, atomic_write_text
 from degusta_learn.files.jsonio import atomic_write_json
-from degusta_learn.metrics import OVERLAP_FRACTION, SET_PENALTY
+from degusta_learn.metrics import OVERLAP_FRACTION, PAD_MARGIN, PAD_RATIO, SET_PENALTY, SHORT_RATIO
+from degusta_learn.metrics.matching import matching_line
+from degusta_learn.scene.predictions import EPISODES_FILE, NOT_RECORDED, holds_test
 from degusta_learn.textsafe import md_prose, md_text, write_csv
 
-PAPER_NOTE = "The paper's metrics: object accuracy, Kabsch RMSD and acceptability (acc@t), marked (paper)."
+PAPER_NOTE = ("The paper's metrics are marked (paper): object accuracy and Kabsch RMSD here, its acceptability (Kabsch "
+              "RMSD <= t) in the Acceptability section; acc@t here is acceptability like for like (unregistered set "
+              "RMSD <= t, the kind of error the ratings were collected with).")
+SHORTCUT_NOTE = ("Shortcuts move the paper's columns: keeping only a few objects flatters Kabsch RMSD and the paper's "
+                 "acc@t, "
+                 "padding an answer or naming the whole catalog flatters object accuracy. Set RMSD, which ranks, "
+                 f"charges c = {SET_PENALTY} for each missing or extra object, so a shortcut lowers it only where "
+                 "the answers were too long to begin with (cutting wrong objects) or near chance; answers that take "
+                 "a shortcut wholesale are marked degenerate and ranked last (docs/metrics.md, \"Degenerate answers "
+                 "and shortcuts\").")
+"""The line under the main table: which of the paper's columns a shortcut flatters."""
+DEGENERATE_NOTES = {
+    "too few": f"most of its scored predictions have at most {SHORT_RATIO:g} x the ground truth's objects or match at "
+               "most 2 of 3 or more, where Kabsch RMSD and acc@t are ~0 by construction",
+    "padding": f"most of its scored predictions have at least {PAD_RATIO:g} x the ground truth's objects or "
+               f"{PAD_MARGIN} more, which can only raise object accuracy",
+    "constant": "it gives one answer (the same objects at the same places) on more than half of its scored episodes, "
+                "to several participants",
+}
+"""The footnote of each degeneracy reason (metrics/degenerate.py) under the main table."""
 
 METRIC_NOTES = f"""\
 - **set RMSD** (ranks the methods): OSPA-style set distance on the same matching and Kabsch registration as RMSD: sqrt((sum of min(d, c)^2 over matched pairs + c^2 per unmatched object) / max(n_gt, n_pred)), c = {SET_PENALTY} (lower is better; a failed prediction scores c, one object of five at least 0.179).
 - **object accuracy** (paper): fraction of ground-truth objects whose matched prediction is exactly the same object id (higher is better).
 - **Kabsch RMSD** (paper): RMSD between matched positions after the best proper 2D rotation + translation, normalized image units (lower is better).
-- **acc@t** (paper): fraction of episodes whose prediction has Kabsch RMSD <= t (failed predictions never count).
+- **acc@t** (like for like): fraction of episodes whose prediction has unregistered set RMSD <= t. The ratings behind the people's curve were collected on complete scenes moved rigidly, measured by the unregistered RMSD of that move; the unregistered set RMSD equals it for a prediction with the ground truth's number of objects (no pair beyond c) and charges c for each missing or extra object. Failed predictions never count.
+- **acc@t (paper)**: the paper's variant, the fraction with Kabsch RMSD <= t: the registration removes exactly the rigid move the ratings judged, and one or two matched objects give ~0 (see the Acceptability section).
 - **unreg. RMSD**: RMSD of matched positions without registration (where, not only what shape).
 - **count error**: |predicted objects - ground-truth objects|.
 - **object precision**: same-id matches / predicted objects; **object F1**: 2 * same-id matches / (ground-truth + predicted objects), the harmonic mean of precision and object accuracy (which is the recall). A failed prediction scores 0 on all three.
@@ -47,8 +71,9 @@ METRIC_NOTES = f"""\
 - **order τ**: Kendall's tau between the true and the predicted placement order of the matched objects (1 same order, -1 reversed); undefined with fewer than two matched objects, so averaged over the episodes counted beside it.
 - **rotation error**: degrees between predicted and true rotation of matched objects, modulo the symmetry both objects share (a round plate is not scored, a square one modulo 90, a cup, fork, knife or spoon in [0, 180]); mean over the scored pairs of an episode, then over episodes.
 - **off table**: share of predicted objects whose centroid is outside the table surface; **overlapping pairs**: share of pairs of predicted objects whose footprint ellipses (the scene's width x length) overlap by more than {OVERLAP_FRACTION:g} of the smaller one. The ground truth's own rates are shown as the reference.
-- **{DEGENERATE_MARK.strip()}**: more than half of the method's non-failed predictions match at most 2 objects of a ground truth of 3 or more, where Kabsch RMSD is ~0 by construction; such a method is ranked after all others.
-- Matching: Hungarian assignment on Hamming distance over type, colours, materials, shape, pattern (the two colours and the two materials compare as unordered pairs: red/blue = blue/red); ties go to nearer positions.
+- **count bias**: mean of (predicted objects - ground-truth objects), a failed prediction counting as 0 objects: below 0 the method leaves objects out, above 0 it adds some.
+- **degenerate** (marked "(degenerate: reason)"): more than half of the method's scored predictions take one shortcut: **too few objects** (at most {SHORT_RATIO:g} x the ground truth's objects, or at most 2 matched of 3 or more: Kabsch RMSD and acc@t are ~0 there by construction), **too many objects** (at least {PAD_RATIO:g} x the ground truth's, or {PAD_MARGIN} more: object accuracy only rises with more guesses) or a **constant answer** (the same objects at the same places, for at least two participants); such a method is ranked after all others.
+- Matching: on Hamming distance over type, colours, materials, shape, pattern (the two colours and the two materials compare as unordered pairs: red/blue = blue/red), by the rule stated at the top of the report: Hungarian assignment (the default; ties go to nearer positions) or the paper's greedy rule.
 - **{GRAMMAR_MARK.strip()}**: a local model decoded inside the answer grammar, so every answer parses by construction; its "parsed without the grammar" rate (the same model and seeds decoding freely) is the one to set beside free-text failure rates such as the paper's.
 - Caution: Kabsch RMSD alone rewards predicting one or two objects (N = 1 gives RMSD 0, N = 2 is nearly free); read it beside set RMSD, count error and unregistered RMSD. Failed predictions are left out of the Kabsch and unregistered RMSD means and counted in the failure rate (and as c in set RMSD).
 """
@@ -79,22 +104,31 @@ def method_table(summary: dict[str, dict]) -> list[str]:
     """The main table, best first (see RANKING_NOTE), degenerate rows marked, with its notes above it."""
     lines = [RANKING_NOTE + " " + PAPER_NOTE, "",
              "| rank | method | episodes | failure rate | set RMSD | object accuracy (paper) | Kabsch RMSD (paper) | "
-             "acc@0.01 (paper) | acc@0.05 (paper) | acc@0.10 (paper) | unreg. RMSD | count error | "
+             "acc@0.01 | acc@0.05 | acc@0.10 | unreg. RMSD | count error | count bias | "
              "object precision | object F1 | set RMSD (unreg.) |",
-             "|---:|---|---:|---:|---|---|---|---:|---:|---:|---|---|---|---|---|"]
+             "|---:|---|---:|---:|---|---|---|---:|---:|---:|---|---|---|---|---|---|"]
     for rank, (method, s) in enumerate(ranked(summary).items(), 1):
         acc = s["acceptable_at"]
         lines.append(f"| {rank} | {md_label(method, s)} | {s['n_episodes']} | {s['failure_rate']:.3f} | "
                      f"{fmt(s.get('set_rmsd'))} | {fmt(s['object_accuracy'])} | {fmt(s['rmsd'])} | "
                      f"{acc['0.01']:.3f} | {acc['0.05']:.3f} | {acc['0.10']:.3f} | "
-                     f"{fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} | "
+                     f"{fmt(s['rmsd_unregistered'])} | {fmt(s['count_error'], 2)} | {fmt(s.get('count_bias'), 2)} | "
                      f"{fmt(s.get('object_precision'))} | {fmt(s.get('object_f1'))} | "
                      f"{fmt(s.get('set_rmsd_unregistered'))} |")
-    if any(s.get("degenerate") for s in summary.values()):
-        lines += ["", f"{DEGENERATE_MARK.strip()}: more than half of this method's non-failed predictions match at "
-                  "most 2 objects of a ground truth of 3 or more, where Kabsch RMSD is ~0 by construction; it is "
-                  "ranked after every other method."]
+    lines += ["", SHORTCUT_NOTE, *degenerate_notes(summary)]
     return lines
+
+
+def degenerate_notes(summary: dict[str, dict]) -> list[str]:
+    """One footnote per degeneracy reason some method shows (DEGENERATE_NOTES); [] when none is degenerate."""
+    found = [r for r in REASON_LABELS if any(r in (s.get("degenerate_reasons") or ()) for s in summary.values()
+                                             if s.get("degenerate"))]
+    if any(s.get("degenerate") and not s.get("degenerate_reasons") for s in summary.values()):
+        found.append(None)  # an older summary: degenerate, reason not recorded
+    lines = [f"(degenerate: {REASON_LABELS[r]}): {DEGENERATE_NOTES[r]}; ranked after every other method." if r
+             else "(degenerate): its answers take a shortcut (reason not recorded); ranked after every other method."
+             for r in found]
+    return [part for line in lines for part in ("", line)]
 
 
 _SHOWN = {"rotation_error": "rotation error", "overlap_rate": "overlapping pairs"}
@@ -188,13 +222,28 @@ def context_table(summary: dict[str, dict]) -> list[str]:
     return lines
 
 
-def acceptability_lines(curve: dict[float, float], from_ratings: bool) -> list[str]:
+def acceptability_lines(curve: dict[float, float], from_ratings: bool, summary: dict[str, dict] | None = None
+                        ) -> list[str]:
+    """The Acceptability section (the paper's Table 1): the people's tolerance curve, then for every method (ranked)
+    the fraction of its episodes acceptable at t like for like (unregistered set RMSD <= t) and the paper's variant
+    (Kabsch RMSD <= t). Without `summary`, the people's row alone."""
     source = "this dataset's ratings" if from_ratings else "the paper's user study (no ratings in this dataset)"
-    return [f"Rating-based acceptance, from {source}: the fraction of jitter trials with RMSD <= t whose "
-            "normalized rating drop is below 0.2.", "",
-            "| RMSD threshold | " + " | ".join(f"{t:.2f}" for t in curve) + " |",
-            "|---|" + "---:|" * len(curve),
-            "| % of ratings with drop < 0.2 | " + " | ".join(f"{v:.3f}" for v in curve.values()) + " |"]
+    ts = [f"{t:.2f}" for t in sorted(curve)]
+    lines = [f"Rating-based acceptance, from {source}: the fraction of jitter trials with RMSD <= t whose "
+             "normalized rating drop is below 0.2. A jitter moves the whole scene rigidly and its RMSD is unregistered, "
+             "so a method is compared like for like by its unregistered set RMSD (every object present and where it "
+             "belongs; a missing or extra object costs c); the paper's variant, Kabsch RMSD <= t, is kept below it, "
+             "labelled (paper).", "",
+             "| error threshold t | " + " | ".join(ts) + " |", "|---|" + "---:|" * len(ts),
+             "| people: % of ratings with drop < 0.2 | " + " | ".join(f"{curve[float(t)]:.3f}" for t in ts) + " |"]
+
+    def cells(fractions) -> str:
+        return " | ".join("-" if (fractions or {}).get(t) is None else f"{fractions[t]:.3f}" for t in ts)
+
+    for method, s in ranked(summary or {}).items():
+        lines.append(f"| {md_label(method, s)}: unregistered set RMSD <= t | {cells(s.get('acceptable_at'))} |")
+        lines.append(f"| {md_label(method, s)}: Kabsch RMSD <= t (paper) | {cells(s.get('acceptable_at_paper'))} |")
+    return lines
 
 
 def write_per_episode_csv(path: Path, rows: list[EpisodeRow]) -> None:
@@ -202,6 +251,40 @@ def write_per_episode_csv(path: Path, rows: list[EpisodeRow]) -> None:
     with atomic_open(path, "w") as f:
         write_csv(f, CSV_COLUMNS, ({k: (None if isinstance(v, float) and math.isnan(v) else v)
                                     for k, v in r.to_row().items()} for r in rows))
+
+
+TEST_REMINDER = ("> Test participants: these are final numbers, one look per result. Every choice (checkpoints, "
+                 "decodings, aggregation, hyperparameters, which build to ship) is made on the validation "
+                 "participants first (docs/metrics.md, \"Protocol: validation for choices, test once\").")
+"""The header line of a report where some prediction is on test participants."""
+VAL_REMINDER = ("> Validation participants: numbers to choose by (checkpoints, decodings, hyperparameters), not the "
+                "final number, which is measured once on the test participants after every choice is frozen.")
+"""The header line of a report whose predictions are all on the validation participants."""
+
+
+def _split_text(label: str) -> str:
+    """A `recorded_split` label as the header says it."""
+    if label == NOT_RECORDED:
+        return "not recorded (predictions written before degusta recorded it)"
+    if label == EPISODES_FILE:
+        return "an episodes file (the dataset has too few participants to split)"
+    return "all participants (train, val and test)" if label == "all" else f"**{md_text(label)}** participants"
+
+
+def split_lines(summary: dict[str, dict]) -> list[str]:
+    """The header's split line, from each method's `split` (evaluate.add_protocol; one clause per split when the
+    methods differ), then a reminder: test numbers are final, validation numbers are for choosing."""
+    by: dict[str, list[str]] = {}
+    for method, s in summary.items():
+        by.setdefault(str(s.get("split", NOT_RECORDED)), []).append(method)
+    if not by:
+        return []
+    clauses = [_split_text(label) if len(by) == 1 else
+               f"{_split_text(label)} ({', '.join(md_text(m) for m in methods)})" for label, methods in by.items()]
+    line = "Split (from the predictions' records): " + "; ".join(clauses) + "."
+    if any(holds_test(label) for label in by):
+        return [line, "", TEST_REMINDER, ""]
+    return [line, "", VAL_REMINDER, ""] if set(by) == {"val"} else [line, ""]
 
 
 def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, dict], rows: list[EpisodeRow],
@@ -218,6 +301,8 @@ def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, d
              f"{unit}s.", ""]
     if "SYNTHETIC" in dataset_label:
         lines += ["> These numbers are on SYNTHETIC data generated by degusta_learn, not on the paper's human data.", ""]
+    lines += split_lines(summary)
+    lines += [matching_line(next((s["matching"] for s in summary.values() if "matching" in s), "hungarian")), ""]
     lines += ["## Results", "", *method_table(summary), "", intervals_line(summary), "", *few_object_warnings(summary),
               *plan_table(summary), "", intervals_line(summary), ""]
     answers = answer_table(summary)
@@ -226,7 +311,7 @@ def write_report(out: Path, title: str, dataset_label: str, summary: dict[str, d
     ctx = context_table(summary)
     if ctx:
         lines += ["## By context length", "", *ctx, ""]
-    lines += ["## Acceptability", "", *acceptability_lines(curve, from_ratings), ""]
+    lines += ["## Acceptability (the paper's Table 1)", "", *acceptability_lines(curve, from_ratings, summary), ""]
     for note in notes or []:
         lines += [f"> {md_prose(note)}", ""]  # notes name files and methods: escaped, `code` kept
     lines += ["## How to read this", "", METRIC_NOTES, "",

@@ -9,6 +9,9 @@ file; the reader takes 0 for it). `check_records`, which reads the file itself, 
 (`missing_fields`); `score_predictions` then leaves what needs the rotation unscored (rotation error and
 the footprint overlap: nan, `missing` names the field) instead of scoring a 0 nobody predicted, and the
 reports say how many records lack which field.
+
+Each row also carries `answer_key`, a short fingerprint of the answer (its object ids at positions rounded
+to 0.01, metrics.answer_key): the summary's "constant answer" test compares them (metrics/degenerate.py).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.files.jsonio import read_jsonl
-from degusta_learn.metrics import score_many
+from degusta_learn.metrics import answer_key, score_many
 from degusta_learn.scene import Dataset, Episode, Prediction
 from degusta_learn.task.aggregate import AGGREGATIONS
 
@@ -35,8 +38,8 @@ CSV_COLUMNS = ("method", "episode", "participant", "target", "context", "task", 
                "n_matched", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "set_rmsd",
                "object_precision", "object_f1", "set_rmsd_unregistered", "order_tau", "rotation_error",
                "n_rotation_scored", "off_table_rate", "overlap_rate", "gt_off_table_rate", "gt_overlap_rate", "missing",
-               "tokens", "cost_usd", "n_samples", "n_parsed", "aggregation", "constrained", "n_decoded", "forced_closes",
-               "n_free_known", "n_free_parsed")
+               "answer_key", "tokens", "cost_usd", "n_samples", "n_parsed", "aggregation", "constrained", "n_decoded",
+               "forced_closes", "n_free_known", "n_free_parsed")
 MISSING_ATTR = "missing_fields"
 """The attribute `check_records` sets on a Prediction whose file record lacks fields a metric needs: a tuple of
 field names (e.g. ("rotation",)); `score_predictions` reads it."""
@@ -73,6 +76,7 @@ class EpisodeRow:
     gt_off_table_rate: float = math.nan  # the ground truth's own rates (reference)
     gt_overlap_rate: float = math.nan
     missing: str | None = None  # fields the record lacked, e.g. "rotation" (those metrics not scored)
+    answer_key: str | None = None  # fingerprint of the answer (metrics.answer_key; None: failed or empty)
     tokens: float | None = None
     cost_usd: float | None = None
     # Answers of methods that parse model text (zero-shot, fine-tuned VLMs), from the prediction's diagnostics:
@@ -227,8 +231,15 @@ def record_missing_fields(record, pred: Prediction) -> tuple[str, ...]:
     return ()
 
 
+def _answer_key(pred: Prediction) -> str | None:
+    """The answer's fingerprint (metrics.answer_key), for the "constant answer" test; None when it failed."""
+    if pred.failed or not pred.placements:
+        return None
+    return answer_key([p.object for p in pred.placements], [(p.x, p.y) for p in pred.placements])
+
+
 def score_predictions(ds: Dataset, predictions: list[Prediction],
-                      episodes: dict[str, Episode] | None = None) -> list[EpisodeRow]:
+                      episodes: dict[str, Episode] | None = None, matching: str = "hungarian") -> list[EpisodeRow]:
     """Score each prediction against the dataset's target arrangement.
 
     Args:
@@ -236,6 +247,8 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
         predictions: one method's (or several methods') predictions (check them with `check_records`).
         episodes: the episode set, if known; gives context length and task. Without it the context
             length is read from ids of the form ``.../kN`` and the task is "unknown".
+        matching: how predicted objects are matched to true ones, "hungarian" (default) or "paper"
+            (metrics.matching `MATCHINGS`; docs/metrics.md "Matching: ours and the paper's").
 
     Records `check_records` marked as lacking `rotation` get no rotation error and no overlap rate (nan;
     `missing` = "rotation").
@@ -247,7 +260,8 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
                                f"trial {pred.target}, but the episode's target is {ep.participant!r} trial {ep.target}")
     gts = [ds.arrangement(pred.participant, pred.target) for pred in predictions]
     rows = []
-    for pred, score in zip(predictions, score_many(ds.catalog, gts, predictions, tables=ds.tables)):
+    for pred, score in zip(predictions, score_many(ds.catalog, gts, predictions, tables=ds.tables,
+                                                       matching=matching)):
         lacks = getattr(pred, MISSING_ATTR, ())
         if "rotation" in lacks:  # the reader's 0 is no answer: nothing that depends on it is scored
             score.rotation_error, score.n_rotation_scored, score.overlap_rate = math.nan, 0, math.nan
@@ -267,6 +281,7 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
             rotation_error=score.rotation_error, n_rotation_scored=score.n_rotation_scored,
             off_table_rate=score.off_table_rate, overlap_rate=score.overlap_rate,
             gt_off_table_rate=score.gt_off_table_rate, gt_overlap_rate=score.gt_overlap_rate,
-            missing=" ".join(lacks) or None, tokens=usage_number(pred.diagnostics, "tokens"),
-            cost_usd=usage_number(pred.diagnostics, "cost_usd"), **answer_counts(pred.diagnostics)))
+            missing=" ".join(lacks) or None, answer_key=_answer_key(pred),
+            tokens=usage_number(pred.diagnostics, "tokens"), cost_usd=usage_number(pred.diagnostics, "cost_usd"),
+            **answer_counts(pred.diagnostics)))
     return rows

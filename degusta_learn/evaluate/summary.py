@@ -11,12 +11,18 @@ that can be undefined was averaged (order_tau needs two matched objects, rotatio
 off_table_rate a placement, overlap_rate two; rmsd a non-failed prediction); `ground_truth` holds the
 ground truth's own off-table and overlap rates over the same episodes (the reference for the
 plausibility columns); `missing_fields` counts records that lacked a field (e.g. rotation) a metric
-needs. `acceptable_at` maps "0.01", "0.05", "0.10" to the fraction of episodes whose prediction
-has Kabsch RMSD <= t. A failed or empty prediction has object accuracy 0, is not acceptable at any t
+needs. `acceptable_at` maps "0.01", "0.05", "0.10" to the fraction of episodes whose prediction is
+acceptable at t like for like (its unregistered set RMSD <= t: the kind of error the ratings were collected
+with, metrics.ACCEPTABILITY_ERROR); `acceptable_at_paper` is the paper's variant (Kabsch RMSD <= t).
+A failed or empty prediction has object accuracy 0, is not acceptable at any t
 and is left out of the Kabsch and unregistered RMSD means (which is why failure_rate always stands
 beside them); in the set_rmsd mean it counts as c = SET_PENALTY, the worst score.
-`frac_le2_matched` and `degenerate` say whether Kabsch RMSD flatters the method
-(metrics.few_matched_fraction). `by_context` repeats the summary per context length when the episodes
+`count_bias` is the mean of n_pred - n_gt with its interval (a failed prediction counts as 0 objects):
+below 0 the method leaves objects out, above 0 it adds some. `degenerate` says whether the answers take a
+shortcut and `degenerate_reasons` which ("too few", "padding", "constant": metrics.degenerate_answers,
+from n_gt, n_pred, failed and each row's `answer_key`), with the share behind each reason in
+`degenerate_fractions`; `frac_le2_matched` is the older few-matched share (metrics.few_matched_fraction),
+one of the "too few" tests. `by_context` repeats the summary per context length when the episodes
 span several. Methods that parse model text add `parse_rate` (answers parsed / sampled); a local model's
 add `constrained` (decoded inside the answer grammar: labelled GRAMMAR_MARK), `forced_close_rate`
 (answers the token budget closed early or cut off) and, constrained, `parse_rate_free`: the fraction of
@@ -43,9 +49,11 @@ import numpy as np
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import EpisodeRow
 from degusta_learn.metrics import (
+    ACCEPTABILITY_ERROR,
+    PAPER_ACCEPTABILITY_ERROR,
     THRESHOLDS,
     bootstrap_ci,
-    few_matched_fraction,
+    degenerate_answers,
     fraction_acceptable,
     paired_bootstrap,
 )
@@ -61,7 +69,11 @@ PAIRED_METRICS = ("set_rmsd", "object_accuracy", "rmsd")
 """The metrics of the paired comparisons (the same as evaluate/compare.py's)."""
 CLUSTERS = ("participant", None)
 """What the bootstrap resamples: participants (the default) or, with None, episodes."""
-DEGENERATE_MARK = " (degenerate: ≤2 objects matched)"
+DEGENERATE_MARK = " (degenerate)"
+"""The mark of a degenerate method whose reasons are not known (e.g. an older metrics.json); `degenerate_mark`
+names the reasons."""
+REASON_LABELS = {"too few": "too few objects", "padding": "too many objects", "constant": "constant answer"}
+"""How a mark names each reason of metrics.degenerate_answers."""
 GRAMMAR_MARK = " + grammar"
 """Appended to a method decoded inside the answer grammar: its parse rate is 1 by construction, so compare
 its `parse_rate_free` (not its failure rate) with free-text methods and the paper."""
@@ -125,15 +137,20 @@ def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 
             missing[name] = missing.get(name, 0) + 1
     if missing:
         out["missing_fields"] = missing
+    out["count_bias"] = _interval(count_bias(rows), n_bootstrap, seed, clusters)
     scored = [r for r in rows if not r.failed]
     # Kabsch RMSD is ~0 by construction with 1-2 matched objects: say how often that happens.
     out["few_objects_rate"] = round(sum(r.n_matched <= 2 for r in scored) / len(scored), 6) if scored else None
-    frac, degenerate = few_matched_fraction([r.n_gt for r in rows], [r.n_matched for r in rows],
-                                            [r.failed for r in rows])
-    out["frac_le2_matched"] = _num(frac)
-    out["degenerate"] = degenerate
-    rmsds = np.array([r.rmsd for r in rows], dtype=float)
-    out["acceptable_at"] = {f"{t:.2f}": round(v, 6) for t, v in fraction_acceptable(rmsds, THRESHOLDS).items()}
+    verdict = degenerate_answers([r.n_gt for r in rows], [r.n_pred for r in rows], [r.failed for r in rows],
+                                 answer_keys=[r.answer_key for r in rows], participants=[r.participant for r in rows],
+                                 n_matched=[r.n_matched for r in rows])
+    out["frac_le2_matched"] = _num(verdict.few_matched_fraction)
+    out["degenerate"] = verdict.degenerate
+    out["degenerate_reasons"] = list(verdict.reasons)
+    out["degenerate_fractions"] = verdict.fractions()
+    for key, error in (("acceptable_at", ACCEPTABILITY_ERROR), ("acceptable_at_paper", PAPER_ACCEPTABILITY_ERROR)):
+        errors = np.array([getattr(r, error) for r in rows], dtype=float)
+        out[key] = {f"{t:.2f}": round(v, 6) for t, v in fraction_acceptable(errors, THRESHOLDS).items()}
     tokens = [r.tokens for r in rows if r.tokens is not None]
     costs = [r.cost_usd for r in rows if r.cost_usd is not None]
     if tokens:
@@ -143,6 +160,11 @@ def summarize_rows(rows: list[EpisodeRow], n_bootstrap: int = 1000, seed: int = 
         out["cost_usd_total"] = round(float(np.sum(costs)), 6)
     out.update(_answer_rates(rows))
     return out
+
+
+def count_bias(rows: list[EpisodeRow]) -> np.ndarray:
+    """n_pred - n_gt per row, a failed prediction counting as 0 objects (E,)."""
+    return np.array([(0 if r.failed else r.n_pred) - r.n_gt for r in rows], dtype=float)
 
 
 def _answer_rates(rows: list[EpisodeRow]) -> dict:
@@ -253,9 +275,19 @@ def ranked(summary: dict[str, dict]) -> dict[str, dict]:
     return {m: summary[m] for m in rank_methods(summary)}
 
 
+def degenerate_mark(summary: dict) -> str:
+    """The mark of a degenerate method naming its reasons, e.g. " (degenerate: too few objects)" (REASON_LABELS;
+    a reason it does not know is left out), "" for a method that is not degenerate, DEGENERATE_MARK when the
+    summary does not say why."""
+    if not summary.get("degenerate"):
+        return ""
+    reasons = [REASON_LABELS[r] for r in summary.get("degenerate_reasons") or () if r in REASON_LABELS]
+    return f" (degenerate: {', '.join(reasons)})" if reasons else DEGENERATE_MARK
+
+
 def label(method: str, summary: dict) -> str:
     """The method's name as tables and plots show it: with GRAMMAR_MARK when it decoded inside the answer
-    grammar, and DEGENERATE_MARK when it is degenerate. Plain text: Markdown tables use report.md_label (the name
-    escaped by textsafe.md_text), plots textsafe.plot_text."""
+    grammar, and its `degenerate_mark` when it is degenerate. Plain text: Markdown tables use report.md_label (the
+    name escaped by textsafe.md_text), plots textsafe.plot_text."""
     name = method + GRAMMAR_MARK if summary.get("constrained") else method
-    return name + DEGENERATE_MARK if summary.get("degenerate") else name
+    return name + degenerate_mark(summary)

@@ -5,7 +5,8 @@ unregistered RMSD, count error and the set-aware `set_rmsd` (unmatched objects c
 used to rank methods) are always reported beside it. The rest of the task plan: object precision and F1
 (beside accuracy, the recall), placement order (Kendall's tau, plan.py), rotation modulo each object's
 symmetry (plan.py), the unregistered set RMSD, and physical plausibility: centroids off the table and
-overlapping footprints (plausibility.py). Intervals and paired tests resample participants when given
+overlapping footprints (plausibility.py). A method whose answers take a shortcut (too few objects, padding,
+one answer for everyone) is degenerate (degenerate.py) and ranked last. Intervals and paired tests resample participants when given
 `clusters` (bootstrap.py).
 
 Usage:
@@ -15,7 +16,9 @@ Usage:
 """
 
 from degusta_learn.metrics.acceptability import (
+    ACCEPTABILITY_ERROR,
     PAPER_ACCEPTABILITY,
+    PAPER_ACCEPTABILITY_ERROR,
     PAPER_MOGMA_FRACTION,
     THRESHOLDS,
     acceptability_curve,
@@ -27,6 +30,16 @@ from degusta_learn.metrics.bootstrap import (
     n_clusters,
     paired_bootstrap,
     percentile_p_value,
+)
+from degusta_learn.metrics.degenerate import (
+    PAD_MARGIN,
+    PAD_RATIO,
+    REASONS,
+    SHORT_RATIO,
+    DegenerateVerdict,
+    answer_key,
+    constant_fraction,
+    degenerate_answers,
 )
 from degusta_learn.metrics.kabsch import kabsch_rmsd, kabsch_rmsd_batch, kabsch_transform, unregistered_rmsd
 from degusta_learn.metrics.matching import feature_table, match, match_costs
@@ -59,10 +72,12 @@ from degusta_learn.metrics.set_score import (
 )
 
 __all__ = [
-    "DEGENERATE_FRACTION", "OVERLAP_FRACTION", "PAPER_ACCEPTABILITY", "PAPER_MOGMA_FRACTION", "SET_PENALTY",
-    "SHAPE_SYMMETRY", "THRESHOLDS", "TYPE_SYMMETRY", "UNKNOWN_SYMMETRY",
-    "EpisodeScore", "MatchedPair", "acceptability_curve", "bootstrap_ci", "bootstrap_means", "feature_table",
-    "few_matched_fraction", "footprint_overlap", "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch",
+    "ACCEPTABILITY_ERROR", "PAPER_ACCEPTABILITY_ERROR",
+    "DEGENERATE_FRACTION", "OVERLAP_FRACTION", "PAD_MARGIN", "PAD_RATIO", "PAPER_ACCEPTABILITY",
+    "PAPER_MOGMA_FRACTION", "REASONS", "SET_PENALTY", "SHAPE_SYMMETRY", "SHORT_RATIO", "THRESHOLDS", "TYPE_SYMMETRY",
+    "UNKNOWN_SYMMETRY",
+    "DegenerateVerdict", "EpisodeScore", "MatchedPair", "acceptability_curve", "answer_key", "bootstrap_ci",
+    "bootstrap_means", "constant_fraction", "degenerate_answers", "feature_table", "few_matched_fraction", "footprint_overlap", "fraction_acceptable", "kabsch_rmsd", "kabsch_rmsd_batch",
     "kabsch_transform", "kendall_tau", "match", "match_costs", "matched_pairs", "n_clusters", "off_table_rates",
     "overlap_rates", "paired_bootstrap", "percentile_p_value", "rotation_errors", "score_many", "score_prediction",
     "set_rmsd_points", "symmetry_order", "unregistered_rmsd",

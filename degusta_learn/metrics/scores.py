@@ -30,10 +30,15 @@ off_table_rate and overlap_rate nan (nothing placed to judge; the failure rate s
 empty prediction scores the same. An empty ground truth gives nan accuracy and set RMSDs, precision and
 F1 0 for a non-empty prediction.
 
+Matching (`matching=`, matching.py `MATCHINGS`): "hungarian" (the default: minimum total Hamming distance,
+ties to nearer positions) or "paper" (the paper's greedy rule: each ground-truth object in placement order takes
+the least-Hamming prediction not yet taken). Every score above is taken on the pairs of the chosen rule;
+`matched_pairs` lists them.
+
 `score_many` is the fast path for whole prediction files: it groups episodes by (len(gt), len(pred)),
 builds the cost matrices and RMSDs for each group in one vectorized step, and only loops for the
-Hungarian solver. Both paths build the matching costs with the same function (bit for bit the same
-matching); `score_prediction` then does the few-point arithmetic in plain Python, so its RMSDs may
+Hungarian solver (the greedy rule loops over ground-truth objects, vectorized over episodes). Both paths
+match with the same function (`matching.assign`: bit for bit the same matching under either rule); `score_prediction` then does the few-point arithmetic in plain Python, so its RMSDs may
 differ from `score_many`'s in the last bits (~1e-16).
 
 Usage:
@@ -41,6 +46,7 @@ Usage:
     gt = ds.arrangement(p, trial)
     s = score_prediction(ds.catalog, gt, prediction.placements, prediction.failed, table=ds.tables[gt.table])
     scores = score_many(ds.catalog, gts, predictions, tables=ds.tables)   # list[EpisodeScore], same order
+    paper = score_many(ds.catalog, gts, predictions, tables=ds.tables, matching="paper")
 """
 
 from __future__ import annotations
@@ -50,11 +56,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-
 from degusta_learn.errors import DegustaError
 from degusta_learn.metrics.kabsch import kabsch_sq_residuals_batch, kabsch_sq_residuals_points
-from degusta_learn.metrics.matching import as_complex, feature_table, match_costs
+from degusta_learn.metrics.matching import as_complex, assign, check_matching, feature_table
 from degusta_learn.metrics.plan import kendall_tau_batch, mean_rotation_error, pair_symmetry
 from degusta_learn.metrics.plausibility import off_table_rates, overlap_rates
 from degusta_learn.metrics.set_score import SET_PENALTY, set_rmsd_batch, set_rmsd_points
@@ -112,7 +116,7 @@ def _trivial(n_gt: int, n_pred: int, failed: bool) -> EpisodeScore | None:
 
 
 def score_prediction(catalog: Catalog, gt: Arrangement, placements: Sequence[Placement],
-                     failed: bool = False, table: Table | None = None) -> EpisodeScore:
+                     failed: bool = False, table: Table | None = None, matching: str = "hungarian") -> EpisodeScore:
     """Score one prediction against its ground-truth arrangement.
 
     Args:
@@ -121,13 +125,15 @@ def score_prediction(catalog: Catalog, gt: Arrangement, placements: Sequence[Pla
         placements: the predicted placements (object ids may repeat).
         failed: the method failed on this episode (scored as predicting nothing).
         table: the table `gt` is set on (`ds.tables[gt.table]`); without it the off-table rates are nan.
+        matching: the matching rule, "hungarian" (default) or "paper" (matching.py `MATCHINGS`).
 
     Returns:
         The EpisodeScore (see the module docstring for each field).
 
     Raises:
-        DegustaError: an object id is not in the catalog.
+        DegustaError: an object id is not in the catalog, or `matching` is not a known rule.
     """
+    check_matching(matching)
     placements, pred_failed = _unpack(placements)
     ftable = feature_table(catalog)
     g = ftable.rows_of([p.object for p in gt.placements], f"ground truth {gt.participant!r} trial {gt.trial}")
@@ -135,7 +141,7 @@ def score_prediction(catalog: Catalog, gt: Arrangement, placements: Sequence[Pla
     failed = failed or pred_failed
     score = _trivial(n, m, failed)
     if score is None:
-        gi, pi, same, d2, sq = _match_one(ftable, g, gt, placements)
+        gi, pi, same, d2, sq = _match_one(ftable, g, gt, placements, matching)
         p = ftable.rows_of([q.object for q in placements], "prediction")
         k, correct = len(gi), sum(same)
         order = pair_symmetry(ftable.symmetry[[g[i] for i in gi]], ftable.symmetry[[p[j] for j in pi]])
@@ -163,13 +169,13 @@ def _add_plausibility(ftable, scores: list[EpisodeScore], gts: Sequence[Arrangem
             setattr(s, f"{which}overlap_rate", v)
 
 
-def _match_one(table, g, gt: Arrangement, placements: Sequence[Placement]):
+def _match_one(table, g, gt: Arrangement, placements: Sequence[Placement], matching: str = "hungarian"):
     """(gt_idx, pred_idx, same object?, squared distances, squared residuals after Kabsch) of the matched pairs."""
     p = table.rows_of([q.object for q in placements], "prediction")
     gxy, pxy = _xy(gt.placements), _xy(placements)
     ham = table.hamming_between(np.array([g]), np.array([p]))  # (1, n, m)
-    cost = match_costs(ham, np.array(gxy).view(np.complex128)[None], np.array(pxy).view(np.complex128)[None])
-    gi, pi = (a.tolist() for a in linear_sum_assignment(cost[0]))
+    gi, pi = (a[0].tolist() for a in assign(ham, np.array(gxy).view(np.complex128)[None],
+                                            np.array(pxy).view(np.complex128)[None], matching))
     a = [[gxy[2 * i], gxy[2 * i + 1]] for i in gi]  # matched positions, Python floats
     b = [[pxy[2 * j], pxy[2 * j + 1]] for j in pi]
     same = [bool(g[i] == p[j]) for i, j in zip(gi, pi)]  # same row <=> same object id
@@ -188,28 +194,29 @@ class MatchedPair:
     residual: float  # after the Kabsch registration of all the episode's matched pairs
 
 
-def matched_pairs(catalog: Catalog, gt: Arrangement, placements: Sequence[Placement]) -> list[MatchedPair]:
-    """The pairs behind an episode's scores, for per-object analyses (e.g. error by the item's place in the answer;
-    benchmarks/by_position.py). An empty or failed prediction has none."""
+def matched_pairs(catalog: Catalog, gt: Arrangement, placements: Sequence[Placement],
+                  matching: str = "hungarian") -> list[MatchedPair]:
+    """The pairs behind an episode's scores under rule `matching` (as `score_prediction` with the same rule
+    matched them), in ground-truth order, for per-object analyses (e.g. error by the item's place in the answer;
+    benchmarks/by_position.py) and the qualitative figures. An empty or failed prediction has none."""
+    check_matching(matching)
     placements, failed = _unpack(placements)
     table = feature_table(catalog)
     g = table.rows_of([p.object for p in gt.placements], f"ground truth {gt.participant!r} trial {gt.trial}")
     if failed or not placements or not len(g):
         return []
-    gi, pi, same, d2, sq = _match_one(table, g, gt, placements)
+    gi, pi, same, d2, sq = _match_one(table, g, gt, placements, matching)
     return [MatchedPair(i, j, s, math.sqrt(d), math.sqrt(r)) for i, j, s, d, r in zip(gi, pi, same, d2, sq)]
 
 
 def _score_group(table, g: np.ndarray, gxy: np.ndarray, grot: np.ndarray, p: np.ndarray, pxy: np.ndarray,
-                 prot: np.ndarray) -> list[EpisodeScore]:
+                 prot: np.ndarray, matching: str = "hungarian") -> list[EpisodeScore]:
     """Score E episodes sharing n = len(gt) > 0, m = len(pred) > 0: rows g (E, n), p (E, m); xy (E, n, 2);
-    rotations (E, n), (E, m)."""
+    rotations (E, n), (E, m); matched under rule `matching`."""
     n_ep, n, m = g.shape[0], g.shape[1], p.shape[1]
-    cost = match_costs(table.hamming_between(g, p), as_complex(gxy), as_complex(pxy))  # (E, n, m)
     k = min(n, m)
-    gi, pi = np.empty((n_ep, k), dtype=np.int64), np.empty((n_ep, k), dtype=np.int64)
-    for e in range(n_ep):
-        gi[e], pi[e] = linear_sum_assignment(cost[e])  # gi ascending: pairs listed in ground-truth order
+    # (E, k) each, gi ascending: pairs listed in ground-truth order
+    gi, pi = assign(table.hamming_between(g, p), as_complex(gxy), as_complex(pxy), matching)
     rows = np.arange(n_ep)[:, None]  # (E, 1)
     g_m, p_m = g[rows, gi], p[rows, pi]  # (E, k) catalog rows of the matched objects
     correct = (g_m == p_m).sum(1)  # (E,)
@@ -232,7 +239,7 @@ def _score_group(table, g: np.ndarray, gxy: np.ndarray, grot: np.ndarray, p: np.
 
 
 def score_many(catalog: Catalog, gts: Sequence[Arrangement], preds: Sequence,
-               tables: Mapping[int, Table] | None = None) -> list[EpisodeScore]:
+               tables: Mapping[int, Table] | None = None, matching: str = "hungarian") -> list[EpisodeScore]:
     """Score many predictions at once (vectorized; equal to calling `score_prediction` on each).
 
     Args:
@@ -242,10 +249,12 @@ def score_many(catalog: Catalog, gts: Sequence[Arrangement], preds: Sequence,
             used), a sequence of `Placement`, or None (a failed prediction).
         tables: the dataset's tables by id (`ds.tables`): each prediction is judged on its ground truth's
             table (`gt.table`). Without them (or for a table id they lack) the off-table rates are nan.
+        matching: the matching rule, "hungarian" (default) or "paper" (matching.py `MATCHINGS`).
 
     Returns:
         One EpisodeScore per episode, in order.
     """
+    check_matching(matching)
     if len(gts) != len(preds):
         raise DegustaError(f"score_many: {len(gts)} ground truths but {len(preds)} predictions")
     table = feature_table(catalog)
@@ -266,7 +275,7 @@ def score_many(catalog: Catalog, gts: Sequence[Arrangement], preds: Sequence,
                 lst.append(v)
     for (n, m), (idx, g, gxy, grot, p, pxy, prot) in groups.items():
         scores = _score_group(table, np.array(g), np.array(gxy).reshape(-1, n, 2), np.array(grot, dtype=float),
-                              np.array(p), np.array(pxy).reshape(-1, m, 2), np.array(prot, dtype=float))
+                              np.array(p), np.array(pxy).reshape(-1, m, 2), np.array(prot, dtype=float), matching)
         for e, s in zip(idx, scores):
             out[e] = s
     _add_plausibility(table, out, gts, placed, [None if tables is None else tables.get(gt.table) for gt in gts])

@@ -1,4 +1,4 @@
-"""The set-aware score `set_rmsd` and the "degenerate method" test: what Kabsch RMSD cannot see.
+"""The set-aware score `set_rmsd` and the few-matched rule: what Kabsch RMSD cannot see.
 
 Kabsch RMSD is taken over the N = min(n_gt, n_pred) matched pairs only, so predicting one object gives
 0 and two nearly 0. `set_rmsd` is an OSPA distance (Optimal Sub-Pattern Assignment, Schuhmacher,
@@ -16,8 +16,9 @@ c = SET_PENALTY = 0.2 normalized image units: an object further than 0.2 of the 
 belongs counts as badly as a missing one. Random placement's Kabsch RMSD is ~0.22 on the default
 data, so c sits at "no better than chance" and an unmatched object costs what a random guess costs.
 
-A method is *degenerate* when most of its scored predictions match at most 2 objects of a ground
-truth of 3 or more (`few_matched_fraction`): there Kabsch RMSD is ~0 by construction.
+`few_matched_fraction` counts how often a method's scored predictions match at most 2 objects of a
+ground truth of 3 or more, where Kabsch RMSD is ~0 by construction: one of the "too few" tests of
+metrics/degenerate.py, which decides whether a method is degenerate.
 
 Usage:
     from degusta_learn.metrics import SET_PENALTY, few_matched_fraction
@@ -34,7 +35,8 @@ import numpy as np
 SET_PENALTY = 0.2
 """c, the cost of one unmatched object (and the cap on a matched pair's distance), image units."""
 DEGENERATE_FRACTION = 0.5
-"""A method is degenerate when more than this fraction of its scored predictions match <= 2 objects."""
+"""A degeneracy reason applies when more than this fraction of a method's scored predictions show it
+(metrics/degenerate.py; here: match <= 2 objects of >= 3)."""
 
 
 def set_rmsd_points(sq_residuals: list[float], n_gt: int, n_pred: int, c: float = SET_PENALTY) -> float:
