@@ -1,4 +1,6 @@
-"""`PromptOptions.context_answers`: each context arrangement written in the answer format after its image."""
+"""The context tables written in the answer format after their images (`modality: both`, spelled
+`PromptOptions(context_answers=True)` in records written before `modality`, and `backend.context_answers` by the hf
+backend itself). The modality controls themselves: tests/test_modality.py."""
 
 from __future__ import annotations
 
@@ -101,24 +103,25 @@ def test_the_finetune_config_key_reaches_the_examples_and_the_record(small_datas
     from degusta_learn.scene import load_dataset
 
     cfg = load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "seed": 0, "data": {
-        "render_size": 64, "contexts": [2], "context_answers": True}})
+        "render_size": 64, "contexts": [2], "modality": "both"}})
     ds = load_dataset(small_dataset_dir)
     train, _ = build_examples(cfg, ds, Grid(8, 8))
-    assert isinstance(train, LiftedExamples) and train.options.context_answers
+    assert isinstance(train, LiftedExamples) and train.options.modality == "both"
     assert len(_answer_lines(train[0].prompt)) == 2
     write_meta(tmp_path, cfg, SimpleNamespace(image_processor=SimpleNamespace(size={})))
     record = read_record(tmp_path / FINETUNE_FILE)
-    assert isinstance(record, FinetuneRecord) and record.prompt.context_answers is True
-    # a record written before the option existed reads as the paper's prompt
+    assert isinstance(record, FinetuneRecord) and record.prompt.modality == "both"
     data = json.loads((tmp_path / FINETUNE_FILE).read_text())
-    del data["prompt"]["context_answers"]
-    (tmp_path / FINETUNE_FILE).write_text(json.dumps(data))
-    assert read_record(tmp_path / FINETUNE_FILE).prompt.context_answers is False
+    # a record written before `modality` says context_answers: true is both, false (or neither key) images
+    for old, modality in (({"context_answers": True}, "both"), ({"context_answers": False}, "images"), ({}, "images")):
+        prompt = {k: v for k, v in data["prompt"].items() if k not in ("modality", "context_answers")}
+        (tmp_path / FINETUNE_FILE).write_text(json.dumps({**data, "prompt": {**prompt, **old}}))
+        assert read_record(tmp_path / FINETUNE_FILE).prompt.modality == modality, old
 
 
-def test_a_config_value_that_is_not_a_boolean_names_the_key(small_dataset_dir):
-    with pytest.raises(DegustaError, match="context_answers"):
-        load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "data": {"context_answers": "often"}})
+def test_the_old_config_key_names_the_new_one(small_dataset_dir):
+    with pytest.raises(DegustaError, match=r"'data.context_answers' is now 'data.modality \(true was both"):
+        load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "data": {"context_answers": True}})
 
 
 def test_the_hf_backend_writes_the_contexts_out_when_asked_whatever_the_training(setting, monkeypatch):

@@ -6,6 +6,7 @@ per-image token count must resolve the grid (`vlm.inputs.check_grid_resolution`)
 from __future__ import annotations
 
 import functools
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -24,7 +25,11 @@ from degusta_learn.vlm.random_models.replicas import REPLICAS, build_replica  # 
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 REFERENCE = Path(__file__).resolve().parent.parent.parent / "shared" / "reference-models" / "SmolVLM-256M-Instruct"
-TOKENS = {"smolvlm_256m": 64, "smolvlm_500m": 64, "qwen2vl_2b": 256}  # per image at the trained budget
+TOKENS = {"smolvlm_256m": 64, "smolvlm_500m": 64, "qwen2vl_2b": 324}  # per image at the trained budget
+# The farthest a cell border falls from a token border, in tokens (hand-computed, tests/test_grid_alignment.py):
+# SmolVLM 512 px, 26 px margins, 57.5 px cells, 64 px tokens: 26 / 64; Qwen2-VL 504 px, 25 px margins, 56.75 px
+# cells, 28 px tokens: 3 / 28.
+OFFSET = {"smolvlm_256m": 26 / 64, "smolvlm_500m": 26 / 64, "qwen2vl_2b": 3 / 28}
 
 
 @functools.cache
@@ -121,3 +126,26 @@ def test_an_unknown_token_geometry_is_checked_by_counting_image_tokens():
     check_grid_resolution(processor, other, Grid(4, 4), key="model.image_size")  # 16 cells: resolved
     set_image_budget(processor, config, 512)
     check_grid_resolution(processor, other, Grid(8, 8), key="model.image_size")  # 64 tokens
+
+
+@pytest.mark.parametrize("name", sorted(REPLICAS))
+def test_gpu_configs_draw_at_the_model_input_size_with_separate_object_sheets(name):
+    """Render size = the image budget (SmolVLM: the processor's 512 px tile), the five object sheets separate, and
+    the grid's cell borders where the hand-computed geometry puts them among the image tokens."""
+    train = read_yaml(CONFIGS / f"finetune_{name}.yaml")
+    data = train["data"]
+    assert data["render_size"] == train["model"]["image_size"]
+    assert data.get("compose", []) == [] and "objects" in data["include"]
+    if name.startswith("smolvlm"):
+        tile = REPLICAS[name]["processor"]["max_image_size"]["longest_edge"]
+        if REFERENCE.is_dir():
+            real = json.loads((REFERENCE / "preprocessor_config.json").read_text())["max_image_size"]["longest_edge"]
+            assert tile == real
+        assert data["render_size"] == tile == 512
+    for kind in ("zeroshot", "finetuned"):
+        _, cfg = build_config(CONFIGS / f"predict_hf_{name}_{kind}.yaml", [], "method", get_method)
+        assert cfg.render_size == data["render_size"], kind
+    processor, config = processor_and_config(name)
+    set_image_budget(processor, config, train["model"]["image_size"], key="model.image_size")
+    a = check_grid_resolution(processor, config, Grid(8, 8), render_size=data["render_size"])
+    assert a is not None and a.max_offset == pytest.approx(OFFSET[name])

@@ -29,6 +29,11 @@ CARD_METRICS = (("val/set_rmsd", "set RMSD (ranks methods; lower is better)"),
                 ("val/count_error", "count error"), ("val/parse_rate", "answers that parse"))
 """Validation scores a card shows, in this order, when the run logged them."""
 
+MODALITY_WORDS = {"images": "as images (the paper's prompt)",
+                  "text": "written out in the answer format only (no context images)",
+                  "both": "as images and also written out in the answer format (object ids told, not read)"}
+"""How the card says `data.modality` shows a person's past tables."""
+
 METHOD_INPUTS = {"mogma": "grid-marked images, and numbered sheets of the objects",
                  "logma": "grid-marked images, and the objects described as text",
                  "mouma": "unmarked images, and numbered sheets of the objects",
@@ -120,6 +125,8 @@ def card_text(cfg, adapter: bool, selection: dict | None, metrics: dict | None) 
               f"- base model: {md_code(base)}; {what}; trained for up to {_length(cfg.trainer)}, batch "
               f"{cfg.data.batch_size}, lr {cfg.optim.lr:g}, training seed {cfg.trainer.seed}",
               data_line,
+              f"- prompt: `{cfg.method}`, the person's past tables {MODALITY_WORDS[cfg.data.modality]} "
+              f"(`data.modality: {cfg.data.modality}`; predict prompts it so unless its `modality` says otherwise)",
               f"- command: `degusta train --config {CONFIG_FILE}` (the run's resolved config, in this folder; it "
               "reads the dataset from its `dataset:` key)", "", "## Validation", ""]
     if selection is not None:

@@ -15,6 +15,8 @@ from degusta_learn.training import TrainerConfig
 from degusta_learn.vlm.prompt_options import COMPOSE, GROUPS, PromptOptions
 from degusta_learn.vlm.settings import ON_REPEAT_RENAMED, DecodingSettings, ModelSettings
 
+CONTEXT_ANSWERS_RENAMED = "data.modality (true was both: images + text; false was images; or text: text only)"
+
 
 @dataclass
 class FinetuneOptimConfig(OptimConfig):
@@ -65,7 +67,8 @@ class DataConfig:
     """Context lengths of the training episodes (all trials of every train participant, per length)."""
     val_contexts: list[int] = field(default_factory=lambda: [4])
     """Context lengths of the validation episodes (val participants; `data.val_episodes` drawn from all of them)."""
-    RENAMED: ClassVar[dict[str, str]] = {"val_context": "data.val_contexts (a list, e.g. [4])"}
+    RENAMED: ClassVar[dict[str, str]] = {"val_context": "data.val_contexts (a list, e.g. [4])",
+                                         "context_answers": CONTEXT_ANSWERS_RENAMED}
     val_episodes: int = bounded(16, 0, 100_000)
     """Validation episodes generated per validation (0: no validation)."""
     max_train_episodes: int | None = bounded(None, 1, 10_000_000)
@@ -78,10 +81,10 @@ class DataConfig:
     """Image groups sent: objects (GoMO sheets), context (final_state_k), target (initial_state_1)."""
     compose: list[str] = field(default_factory=list)
     """Groups drawn as ONE labelled canvas to save image tokens: objects, context, all."""
-    context_answers: bool = False
-    """After each context image, its arrangement written in the answer format (ids, cells, directions): the
-    model is told which objects the person used instead of reading them from the pictures. Not the paper's
-    prompt (vlm/prompt_options.py); saved with the adapter, so predict prompts the same way."""
+    modality: Literal["images", "text", "both"] = "images"
+    """How the context tables are shown (task.prompt.MODALITIES): images (the paper's prompt), text (each written in
+    the answer format after its placement-order line: ids, cells, directions; the context images left out) or both.
+    Saved in the adapter's record, so predict prompts the same way (the predict config's `modality` unless set)."""
     list_end_weight: float = bounded(1.0, 0.0, 1000.0)
     """Loss weight of the answer tokens that decide the list's length: each one that ends the list ("]") or
     goes on to another item (", {"); 1: every answer token alike. The loss is then the weighted mean
@@ -112,11 +115,11 @@ class DataConfig:
             raise DegustaError(f"data.include / data.compose: unknown group {bad[0]!r}")
         if self.batch_size < 1 or self.max_length < 16:
             raise DegustaError("data.batch_size / data.max_length: expected >= 1 / >= 16")
+        self.prompt_options()  # data.modality against data.include
 
     def prompt_options(self) -> PromptOptions:
         """How this config's prompts are cut down (and how predict re-applies them from the adapter's record)."""
-        return PromptOptions(include=list(self.include), compose=list(self.compose),
-                             context_answers=self.context_answers)
+        return PromptOptions(include=list(self.include), compose=list(self.compose), modality=self.modality)
 
 
 @dataclass

@@ -7,8 +7,9 @@ the zero-shot answer format (`format_answer(answer_items(...))`: cells from `Gri
 from `rotation_to_direction`, mark ids, in placement order). Nothing is pre-rendered: images are drawn
 in `__getitem__` (in DataLoader workers), so grid size, image size or method change without a cache.
 
-Each prompt is cut down by the config's `PromptOptions` (`vlm/prompt_options.py`: image groups sent,
-composed canvases), the same options the hf backend re-applies at prediction time.
+Each prompt is cut down by the config's `PromptOptions` (`vlm/prompt_options.py`: the context tables shown as
+`data.modality` says, image groups sent, composed canvases), the same options the hf backend re-applies at
+prediction time (the adapter's record).
 
 Training examples can draw their context trials afresh every epoch (`resample_seed`, `data.resample_contexts`):
 the context of item `i` in epoch `e` is drawn from the participant's other trials with a generator seeded by

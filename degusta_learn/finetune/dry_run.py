@@ -1,5 +1,5 @@
-"""`degusta train --dry-run` for kind finetune: model size, trainable parameters, tokens per example, steps and
-predicted memory, with no weights loaded and nothing written.
+"""`degusta train --dry-run` for kind finetune: model size, trainable parameters, tokens per example, where the grid's
+cells fall among the image tokens, steps and predicted memory, with no weights loaded and nothing written.
 
 Usage:
     degusta train --config configs/finetune_smolvlm_256m.yaml --dry-run
@@ -96,6 +96,29 @@ def vlm_memory(cfg_model, lora_cfg, trainer_cfg, config, total: int, trainable: 
                            runtime_bytes=runtime)
 
 
+def grid_alignment_line(cfg: FinetuneConfig, ds, grid, processor, model_config) -> str | None:
+    """Where the grid cells of the GMA images fall among the image tokens (`vlm.inputs.check_grid_resolution`):
+    one `GridAlignment.describe` per distinct GMA image size among the dataset's tables; None for a method
+    without grid-marked images."""
+    from degusta_learn.render.lifting import Renderer, method_liftings
+    from degusta_learn.vlm.inputs import check_grid_resolution
+
+    if method_liftings(cfg.method)[1] != "gma":
+        return None
+    if "all" in cfg.data.compose:
+        return "not computed: data.compose [all] tiles the grid-marked images into one canvas"
+    renderer = Renderer.for_dataset(ds, size=cfg.data.render_size)
+    sizes = sorted({renderer.table(tid, grid).size for tid in ds.tables})
+    found = [(size, check_grid_resolution(processor, model_config, grid, key="model.image_size",
+                                          render_size=cfg.data.render_size, image_size=size)) for size in sizes]
+    if any(a is None for _, a in found):
+        return "not computed: this model's image-token geometry is not known (vlm/token_grid.py)"
+    text = "; ".join(a.describe() for _, a in found)
+    if "context" in cfg.data.compose:
+        text += " (the target image; data.compose [context] tiles the context images, not computed for them)"
+    return text
+
+
 def dry_run(cfg: FinetuneConfig, log=print, sample: int | None = 32, heaviest: bool = True) -> None:
     """`degusta train --dry-run` for kind finetune: sizes, token budget, steps and memory; loads no weights,
     trains nothing, writes nothing (an unbuilt tiny model is built in a temporary folder, then removed).
@@ -173,6 +196,9 @@ def dry_run(cfg: FinetuneConfig, log=print, sample: int | None = 32, heaviest: b
                                                   budget.heavier)
               + (f"; validation: max {max(c['total'] for c in val_counts)} over {len(val_counts)}" if val_counts else "")),
              ("tokens counted", describe_budget(budget, val_budget, cfg.seed))]
+    alignment = grid_alignment_line(cfg, ds, grid, processor, config)
+    if alignment:
+        lines.append(("grid alignment", alignment))
     lines += dry_run_trainer_lines(t, monitor_keys(cfg), len(train), cfg.data.batch_size)
     mem = vlm_memory(cfg.model, cfg.lora, t, config, total_after, trainable, cfg.data.batch_size, counts, on_gpu)
     lines.append(("predicted memory", mem.describe()))

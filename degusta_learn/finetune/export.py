@@ -149,7 +149,7 @@ def checkpoint_score(ckpt: dict) -> float:
 
 def write_meta(out: Path, cfg: FinetuneConfig, processor, chosen_on_val: bool = True) -> None:
     """Write the run's `FinetuneRecord` (`degusta_finetune.json`, vlm/record.py) into `out`: how the prompts
-    were built, and what the model was trained on (dataset fingerprint, split seed, train and validation
+    were built (`prompt`: the image groups, composed canvases and `modality` of `data`), and what the model was trained on (dataset fingerprint, split seed, train and validation
     participants), which the hf backend checks before predicting. `chosen_on_val`: whether validation chose the
     weights in `out` (a best folder, the run folder) or not (the last weights); early stopping makes it true."""
     from degusta_learn.render.grid import Grid

@@ -46,18 +46,24 @@ METHODS: dict[str, str] = {
     "random": "degusta_learn.baselines.heuristic:RANDOM",
     "population_mean": "degusta_learn.baselines.heuristic:POPULATION_MEAN",
     "copy_nearest": "degusta_learn.baselines.heuristic:COPY_NEAREST",
+    "copy_context_text": "degusta_learn.baselines.copy_context_text:COPY_CONTEXT_TEXT",
     "consensus": "degusta_learn.baselines.heuristic:CONSENSUS",
+    "slot_heuristic": "degusta_learn.baselines.slot_heuristic:SLOT_HEURISTIC",
+    "collaborative": "degusta_learn.baselines.collaborative:COLLABORATIVE",
     "oracle": "degusta_learn.synth.oracle:ORACLE",
+    "posterior": "degusta_learn.synth.posterior:POSTERIOR",
     "louma": "degusta_learn.prompting.runner:LOUMA",
     "logma": "degusta_learn.prompting.runner:LOGMA",
     "mouma": "degusta_learn.prompting.runner:MOUMA",
     "mogma": "degusta_learn.prompting.runner:MOGMA",
     "learned": "degusta_learn.baselines.learned:METHOD",
+    "set_transformer": "degusta_learn.baselines.set_transformer:METHOD",
 }
 
 
 TRAINERS: dict[str, str] = {
     "learned": "degusta_learn.baselines.learned:TRAINER",
+    "set_transformer": "degusta_learn.baselines.set_transformer:TRAINER",
     "finetune": "degusta_learn.finetune.train:TRAINER",
     "pretrain": "degusta_learn.pretrain.train:TRAINER",
 }

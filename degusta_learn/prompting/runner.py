@@ -32,6 +32,8 @@ server fault: its samples are counted failures of that episode, as unparseable a
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import json
 import math
 import queue
@@ -75,6 +77,7 @@ LEDGER_MARK = "degusta zero-shot ledger"
 """The `kind` of every ledger.json the runner writes: only such a file (or one with the keys of ledgers written
 before the mark) is replaced by a later run."""
 _LEDGER_KEYS = {"method", "backend", "model", "n", "episodes", "episodes_done", "cost_usd"}
+MODALITY_RENAMED = "modality (true was both: images + text; false was images; null: as the model was trained)"
 
 
 def is_degusta_ledger(path: Path) -> bool:
@@ -114,6 +117,11 @@ class ZeroShotConfig(PredictConfig):
     prompt_style: Literal["clarified", "paper"] = "clarified"
     """The prompt's text (task.prompt.PROMPT_STYLES): clarified (the appendix prompt with cell naming, the object types,
     the coordinate convention and the placement-order request added) or paper (the appendix prompts verbatim)."""
+    modality: Literal["images", "text", "both"] | None = None
+    """How the context tables are shown (task.prompt.MODALITIES): images (the paper's prompt), text (each written in the
+    answer format, the context images left out) or both; null: as the local model was trained (its degusta_finetune.json
+    or degusta_base.json: `data.modality`), images for any other model. The same decoding and episodes in every
+    modality: only the prompt changes. Predictions and the ledger record the one used."""
     grid: Grid = field(default_factory=Grid)
     """Grid of grid methods."""
     max_retries: int = 5
@@ -132,10 +140,14 @@ class ZeroShotConfig(PredictConfig):
     """Output tokens a sample is assumed to take in estimates (unset: from the dataset's arrangements)."""
 
     RENAMED: ClassVar[dict[str, str]] = {"image_size": "render_size", "n": "decoding.n",
-                                         "temperature": "decoding.temperature", "aggregation": "decoding.aggregation"}
+                                         "temperature": "decoding.temperature", "aggregation": "decoding.aggregation",
+                                         "context_answers": MODALITY_RENAMED}
 
     def __post_init__(self):
         super().__post_init__()
+        if getattr(self.backend, "context_answers", None) is not None:  # hf's old key: one spelling, `modality`
+            raise DegustaError(f"'backend.context_answers' is now '{MODALITY_RENAMED}' (one spelling for fine-tuning "
+                               "and predicting: docs/configs.md)")
         cls = backend_class(self.backend.name)
         if not cls.local_decoding:  # a service or a recorded file answers: the local model's keys are refused
             check_api_settings(self.model, self.decoding, self.backend.name)
@@ -330,17 +342,42 @@ class ZeroShotRun:
         """Estimated input tokens of one request carrying `prompt` (with the answer schema it sends)."""
         return self.backend_cls.input_tokens(prompt, self.cfg.backend, self.cfg.model) + self.schema_tokens
 
+    @functools.cached_property
+    def trained_modality(self) -> str | None:
+        """The modality the local model was trained with (`data.modality` in its record, `vlm.record`); None for a
+        model without a record or a backend that runs no local model. Read when the first prompt is built, after
+        `check_run` has read the same record."""
+        if not self.backend_cls.local_decoding:
+            return None
+        from degusta_learn.vlm.hub import metadata_folder
+        from degusta_learn.vlm.record import locate_record, read_record
+
+        m = self.cfg.model
+        path = locate_record(metadata_folder(m.adapter, "model.adapter", adapter=True),
+                             metadata_folder(m.name, "model.name"))
+        return read_record(path).prompt.modality if path is not None else None
+
+    @property
+    def modality(self) -> str:
+        """The modality this run's prompts show: the config's, else the model's trained one, else images."""
+        return self.cfg.modality or self.trained_modality or "images"
+
     def prompt(self, ep: Episode, style: str | None = None) -> tuple[Prompt, list[str]]:
-        """The prompt of `ep` and its samples' cache keys; `style` (default: the config's `prompt_style`) lets the
-        dry run price the other prompt style."""
+        """The prompt of `ep` (its context tables shown as `modality`) and its samples' cache keys; `style` (default:
+        the config's `prompt_style`) lets the dry run price the other prompt style."""
         c = self.cfg
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
-                              structured=c.backend.structured_output, style=style or c.prompt_style)
+                              structured=c.backend.structured_output, style=style or c.prompt_style,
+                              modality=self.modality)
         d = c.decoding
         keys = sample_keys(prompt, c.backend, c.model, d, d.sampling_temperature, self.max_tokens, c.seed, d.n,
                            schema=self.schema)
         if d.aggregation in ANCHORED:  # + the greedy answer: the key a greedy run (n 1, temperature 0) gives it
             keys += sample_keys(prompt, c.backend, c.model, d, 0.0, self.max_tokens, c.seed, 1, schema=self.schema)
+        if self.modality == "images" and self.trained_modality not in (None, "images"):
+            # the images-only prompt of a model trained with text: before `modality`, the backend added the text to
+            # this very prompt, so its key held answers to the trained prompt; this key is its own
+            keys = [hashlib.sha256(f"{k}\0modality=images".encode()).hexdigest() for k in keys]
         return prompt, keys
 
     # ------------------------------------------------------------------------- requests
@@ -495,7 +532,7 @@ class ZeroShotRun:
         placements, agg = combine(parsed[:n], self.kind, self.grid, self.cfg.decoding.aggregation, anchor=anchor)
         kept = [cut_answer(s.text) if s else None for s in samples]  # bounded, whatever a cache holds
         diag = {"backend": self.cfg.backend.name, "model": self.cfg.model.name, "prompt_style": self.cfg.prompt_style,
-                "n": n, "cached": cached, "responses": kept[:n],
+                "modality": self.modality, "n": n, "cached": cached, "responses": kept[:n],
                 **({"greedy_response": kept[n]} if len(samples) > n else {}),
                 "failures": [{"sample": i, "reason": r} for i, r in sorted(reasons.items())],
                 "n_items": n_items, "n_item_errors": len(item_errors), "item_errors": item_errors,
@@ -513,6 +550,7 @@ class ZeroShotRun:
         c = self.cfg
         # before the model loads: hf refuses train/test leakage and a render size other than the trained one
         backend_class(c.backend.name).check_run(c.backend, c.model, self.ds, episodes, c.render_size)
+        _ = self.modality  # the model's record read once, before the model loads (the ledger names the modality)
         self.backend = make_backend(c.backend, c.model, c.decoding, self.grid, self.ds.catalog)
         if self.max_tokens == "auto":  # hf: what the dataset's answers take with the model's tokenizer
             self.max_tokens = self.backend.token_budget(self.ds, c.method)["max_new_tokens"]
@@ -624,6 +662,7 @@ class ZeroShotRun:
             "model": c.model.name,
             "base_url": getattr(c.backend, "base_url", None),  # null: a backend that calls no server (hf, replay)
             "structured_output": c.backend.structured_output, "prompt_style": c.prompt_style,
+            "modality": self.modality,
             "n": c.decoding.n, "aggregation": c.decoding.aggregation, "episodes": len(episodes), "episodes_done": len(results),
             "episodes_failed": sum(p.failed for p in results.values()),
             "episodes_unanswered": len(unanswered), "stopped": stopped,

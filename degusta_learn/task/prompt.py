@@ -18,6 +18,14 @@ Two prompt styles (`PROMPT_STYLES`; the same images in the same order, only the 
   (`task_text`);
 - `paper`: the appendix prompts verbatim (`PAPER_PROMPTS`, `paper_task_text`), no preamble lines.
 
+How the context tables are shown (`MODALITIES`, `with_modality`; `build_prompt(modality=...)`, a predict config's
+`modality`, a fine-tuning config's `data.modality`; the same text style, images and order otherwise):
+- `images`: each context table as its image with its placement-order line (the paper's prompt);
+- `text`: each context table written out in the answer format after its placement-order line
+  (`CONTEXT_ANSWER_LINE`, the text of `Prompt.context_answers`); the context images and their "name:" labels are
+  left out, not blanked (the prompt's text still names final_state_k.jpg: the table's name, written as text);
+- `both`: the images and the text.
+
 A `Completion` is one sampled answer to a prompt (what every backend and `vlm.generate` return).
 
 Example:
@@ -30,6 +38,7 @@ Example:
 from __future__ import annotations
 
 import base64
+import dataclasses
 import hashlib
 import io
 from dataclasses import dataclass, field
@@ -49,6 +58,11 @@ IMAGE_FORMATS = {"jpeg": ("jpg", "image/jpeg"), "png": ("png", "image/png")}
 JPEG_QUALITY = 90
 PROMPT_STYLES = ("clarified", "paper")
 """The prompt texts `build_prompt` writes (`prompt_style` of a predict config): see the module docstring."""
+MODALITIES = ("images", "text", "both")
+"""How a prompt shows the context tables (`modality` of predict configs, `data.modality` of fine-tuning): as images,
+written as text only, or both (module docstring)."""
+CONTEXT_ANSWER_LINE = "The objects in {name}, written as an answer: {answer}"
+"""The sentence that writes a context table out (modalities text and both), after its placement-order line."""
 
 PAPER_PROMPTS = {
     "objects_as_language": (
@@ -125,10 +139,12 @@ class Prompt:
     """The episode id (the replay backend looks answers up by it; not part of what the model sees)."""
     context_answers: dict[str, str] = field(default_factory=dict)
     """Each context image's arrangement in the answer format, by image name (`final_state_1.jpg` -> answer
-    text). Not part of what the model sees unless a small model's `PromptOptions.context_answers` puts it in
-    the text (`vlm.prompt_options.adapt_prompt`)."""
+    text). Part of what the model sees only in modalities text and both (`with_modality`)."""
     style: str = "clarified"
     """The text's style (`PROMPT_STYLES`): what the dry run and the predictions' diagnostics report."""
+    modality: str | None = None
+    """How the context tables are shown (`MODALITIES`, `with_modality`); None: not chosen yet (the images, as
+    `build_prompt` draws them, until `with_modality` or `vlm.prompt_options.adapt_prompt` chooses)."""
 
     @property
     def text(self) -> str:
@@ -163,8 +179,15 @@ def check_style(style: str, key: str = "prompt_style") -> None:
         raise DegustaError(f"{key}: expected one of {list(PROMPT_STYLES)}, got {style!r}")
 
 
+def check_modality(modality: str, key: str = "modality") -> None:
+    """Refuse a modality that is not one of `MODALITIES` (one line naming `key`)."""
+    if modality not in MODALITIES:
+        raise DegustaError(f"{key}: expected one of {list(MODALITIES)}, got {modality!r}")
+
+
 def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Grid | int | None = None,
-                 image_format: str = "jpeg", structured: bool = False, style: str = "clarified") -> Prompt:
+                 image_format: str = "jpeg", structured: bool = False, style: str = "clarified",
+                 modality: str | None = None) -> Prompt:
     """Build the prompt of `method` for one episode.
 
     Args:
@@ -181,6 +204,8 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
             order, the "name:" label before each image (the paper's text names final_state_k.jpg and
             initial_state_1.jpg, which a model only sees written out) and each context image's placement-order line
             (the paper includes the placement order in the prompt without giving its wording).
+        modality: how the context tables are shown (`with_modality`: images, text or both); None: the images,
+            the modality left to choose (a local model's `PromptOptions`, applied by `adapt_prompt`).
 
     Returns:
         The Prompt; `prompt.images` are in the order the text refers to them.
@@ -238,7 +263,50 @@ def build_prompt(method: str, ds: Dataset, episode: Episode, renderer, grid: Gri
         parts.append(paper_task_text(method, names, target_name, structured=structured))
     else:
         parts.append(task_text(method, names, target_name, grid, catalog.types, structured=structured))
-    return Prompt(method=method, parts=parts, episode=episode.id, context_answers=answers, style=style)
+    prompt = Prompt(method=method, parts=parts, episode=episode.id, context_answers=answers, style=style)
+    return prompt if modality is None else with_modality(prompt, modality)
+
+
+def with_modality(prompt: Prompt, modality: str) -> Prompt:
+    """`prompt` with its context tables shown as `modality` says (module docstring), `prompt.modality` set.
+
+    text and both add each context table's `CONTEXT_ANSWER_LINE` right after its placement-order line (a line
+    already there is not added twice); text then leaves out the context images with their "name:" labels. Only the
+    context tables change: the objects, the target table and the task text are the same in every modality. A
+    prompt whose modality is chosen already is returned as it is if it is the same, refused if not.
+    """
+    check_modality(modality, "modality")
+    if prompt.modality is not None:
+        if prompt.modality != modality:
+            raise DegustaError(f"modality: this prompt shows its context tables as {prompt.modality!r} already; "
+                               f"build it again for {modality!r}")
+        return prompt
+    parts = list(prompt.parts)
+    if modality in ("text", "both"):
+        parts = _with_context_lines(parts, prompt.context_answers)
+    if modality == "text":
+        drop = {i for i, p in enumerate(parts) if isinstance(p, ImagePart) and p.name in prompt.context_answers}
+        drop |= {i - 1 for i in drop if i and parts[i - 1] == f"{parts[i].name}:"}  # their "name:" labels
+        parts = [p for i, p in enumerate(parts) if i not in drop]
+    return dataclasses.replace(prompt, parts=parts, modality=modality)
+
+
+def _with_context_lines(parts: list, answers: dict[str, str]) -> list:
+    """`parts` with each context image's `CONTEXT_ANSWER_LINE` after its placement-order line (`build_prompt` puts
+    that line right after the image); unchanged if the lines are there already."""
+    lines = {name: CONTEXT_ANSWER_LINE.format(name=name, answer=text) for name, text in answers.items()}
+    if set(lines.values()) & {p for p in parts if isinstance(p, str)}:
+        return parts  # already there (e.g. a perception prompt that writes its scenes out itself)
+    out: list = []
+    for i, part in enumerate(parts):
+        out.append(part)
+        if isinstance(part, ImagePart) and part.name in answers:
+            after = parts[i + 1] if i + 1 < len(parts) else None
+            if not (isinstance(after, str) and after.startswith(f"Placement order in {part.name}:")):
+                raise DegustaError(f"prompt: context image {part.name} is not followed by its placement-order line")
+        elif i and isinstance(parts[i - 1], ImagePart) and parts[i - 1].name in answers:
+            out.append(lines[parts[i - 1].name])
+    return out
 
 
 def context_answer(method: str, arrangement, catalog, grid: Grid | None) -> str:

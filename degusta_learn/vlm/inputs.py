@@ -12,6 +12,8 @@ One `ChatFormat` per processor, probed once from the chat template:
 
 `set_image_budget` makes the image cost explicit: one tile per image for Idefics3/SmolVLM (no 17-tile
 blow-ups), fixed pixels for Qwen2-VL; `tokens_per_image` measures it with the real processor.
+`check_grid_resolution` refuses a budget coarser than the grid and, given the render size, says where the grid's
+cell borders fall among the image tokens (`vlm/token_grid.py`).
 
 Example:
     fmt = ChatFormat(processor, model.generation_config)
@@ -217,14 +219,22 @@ def image_tokens_per_side(processor, model_config) -> int | None:
     return None
 
 
-def check_grid_resolution(processor, model_config, grid, key: str = "model.image_size") -> None:
-    """Refuse an image budget whose image tokens are coarser than the grid's cells (one line naming `key`).
+def check_grid_resolution(processor, model_config, grid, key: str = "model.image_size",
+                          render_size: int | None = None, image_size: tuple[int, int] | None = None):
+    """Refuse an image budget whose image tokens are coarser than the grid's cells (one line naming `key`);
+    with `render_size`, also say where the cells' borders fall among the image tokens.
 
     With fewer image tokens per side than grid cells per side, no image token covers a single cell, so
     the model cannot tell which cell an object is in: a grid method cannot be learned or answered.
     Where the token geometry is not known (another model type, an Idefics3 processor that splits images
     into tiles) the image tokens of one image are counted with the processor itself, and fewer tokens
     than the grid has cells is refused.
+
+    Returns:
+        With `render_size` (the size GMA images are drawn at) and a known token geometry, the
+        `vlm.token_grid.GridAlignment` of a GMA image of `image_size` px (default: a square table's,
+        `render_size` x `render_size`) with the renderer's label margins: each cell border's distance to
+        the nearest token border, or that they line up. Otherwise None. Misalignment is reported, not refused.
     """
     n = image_tokens_per_side(processor, model_config)
     need = max(grid.rows, grid.cols)
@@ -234,7 +244,7 @@ def check_grid_resolution(processor, model_config, grid, key: str = "model.image
             raise DegustaError(f"{key}: an image gives the model {count} image tokens, fewer than the "
                                f"{grid.rows}x{grid.cols} grid's {grid.rows * grid.cols} cells, so it cannot see "
                                f"which cell an object is in; raise {key} or use a coarser grid")
-        return
+        return None
     if n < need:
         mtype, vc = getattr(model_config, "model_type", ""), model_config.vision_config
         unit = (vc.patch_size * model_config.scale_factor if mtype == "idefics3" else
@@ -243,6 +253,13 @@ def check_grid_resolution(processor, model_config, grid, key: str = "model.image
         raise DegustaError(f"{key}: images give the model {n} x {n} image tokens, fewer than the {grid.rows}x{grid.cols} grid's "
                            f"{need} cells per side, so it cannot see which cell an object is in; use at least "
                            f"{need * unit} px per image (one token per {unit} px) or a coarser grid")
+    if render_size is None:
+        return None
+    from degusta_learn.vlm.token_grid import cell_alignment, gma_margin, image_token_grid
+
+    width, height = image_size or (render_size, render_size)
+    tokens = image_token_grid(processor, model_config, width, height)
+    return None if tokens is None else cell_alignment(grid, (width, height), gma_margin(render_size), tokens)
 
 
 def _measured_image_tokens(processor, model_config) -> int | None:

@@ -8,16 +8,19 @@ Used wherever a local VLM is prompted: fine-tuning examples (`finetune/data.py`,
   one canvas, to save image tokens. Composed GoMO sheets are redrawn as one legible object sheet
   (`render.compose.objects_canvas`: id digits 8 px tall on a 448 px canvas); other groups are tiled
   (`render.compose.tile_canvas`).
-- `context_answers`: after each context image's placement-order line, that arrangement written in the answer
-  format (`Prompt.context_answers`: types, ids, cells, directions). Not the paper's prompt: the model is told
-  which objects the person used instead of reading their ids from the pictures (a recorded history a robot
-  has; what the structured baselines `copy_nearest` and `consensus` are given). Off by default.
+- `modality`: how the context tables are shown (`task.prompt.MODALITIES`, `with_modality`): `images` (the
+  paper's prompt, the default), `text` (each context written in the answer format after its placement-order line:
+  types, ids, cells, directions; the context images left out) or `both`. With text, the model is told which
+  objects the person used instead of reading their ids from the pictures (a recorded history a robot has; what
+  the structured baselines `copy_nearest` and `consensus` are given). A prompt whose modality was chosen when it was
+  built (`build_prompt(modality=...)`: a predict config's `modality`) keeps it. Records written before `modality`
+  existed say `context_answers` (true: both, false: images); they are read so.
 
 The prompt's text style (`clarified` or the paper's verbatim `paper`, `task.prompt.PROMPT_STYLES`) is chosen when
 the prompt is built (`build_prompt(style=...)`, a predict config's `prompt_style`); `adapt_prompt` keeps it.
 
 Example:
-    opts = PromptOptions(include=["context", "target"], compose=["context"])
+    opts = PromptOptions(include=["context", "target"], compose=["context"], modality="both")
     small = adapt_prompt(build_prompt("mogma", ds, episode, renderer, Grid(8, 8)), opts)
 """
 
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.render.compose import objects_canvas, sheet_source, tile_canvas
+from degusta_learn.task.prompt import check_modality
 
 GROUPS = ("objects", "context", "target")
 COMPOSE = ("objects", "context", "all")
@@ -37,8 +41,14 @@ class PromptOptions:
     """How a prompt is cut down for a small model (see the module docstring)."""
 
     include: list[str] = field(default_factory=lambda: list(GROUPS))
+    """Image groups sent: objects (GoMO sheets), context (final_state_k), target (initial_state_1)."""
     compose: list[str] = field(default_factory=list)
-    context_answers: bool = False
+    """Groups drawn as one labelled canvas: objects, context, all."""
+    modality: str = "images"
+    """How the context tables are shown: images, text or both (`task.prompt.MODALITIES`)."""
+    context_answers: bool | None = None
+    """The spelling of records written before `modality`: true is both (with the context images included; else
+    images), false images. Read, then always null (`modality` holds it)."""
 
     def __post_init__(self):
         for g in self.include:
@@ -47,10 +57,16 @@ class PromptOptions:
         for g in self.compose:
             if g not in COMPOSE:
                 raise DegustaError(f"data.compose: unknown group {g!r} (expected some of {list(COMPOSE)})")
+        if self.context_answers is not None:  # what the old flag computed: text only where context images were sent
+            self.modality = "both" if self.context_answers and "context" in self.include else "images"
+            self.context_answers = None
+        check_modality(self.modality, "data.modality")
+        if self.modality == "both" and "context" not in self.include:
+            raise DegustaError("data.modality: both shows the context images, which data.include leaves out; add "
+                               "context to data.include, or use modality text")
 
     def to_json(self) -> dict:
-        return {"include": list(self.include), "compose": list(self.compose),
-                "context_answers": self.context_answers}
+        return {"include": list(self.include), "compose": list(self.compose), "modality": self.modality}
 
 
 def image_group(name: str) -> str:
@@ -63,11 +79,12 @@ def image_group(name: str) -> str:
 
 
 def adapt_prompt(prompt, options: PromptOptions):
-    """A copy of `prompt` with excluded image groups removed and composed groups drawn as one canvas."""
-    from degusta_learn.task.prompt import ImagePart, Prompt
+    """A copy of `prompt` with its context tables shown as `options.modality` says (unless the prompt's modality
+    was chosen already: it keeps it), excluded image groups removed and composed groups drawn as one canvas."""
+    from degusta_learn.task.prompt import ImagePart, Prompt, with_modality
+    if prompt.modality is None:
+        prompt = with_modality(prompt, options.modality)
     parts = list(prompt.parts)
-    if options.context_answers and "context" in options.include:
-        parts = _with_context_answers(parts, prompt.context_answers)
     keep: list = []
     for i, part in enumerate(parts):
         nxt = parts[i + 1] if i + 1 < len(parts) else None
@@ -88,26 +105,7 @@ def adapt_prompt(prompt, options: PromptOptions):
             if g in options.compose:
                 keep = _compose(keep, {g}, g)
     return Prompt(method=prompt.method, parts=keep, episode=prompt.episode, context_answers=prompt.context_answers,
-                  style=prompt.style)
-
-
-def _with_context_answers(parts: list, answers: dict[str, str]) -> list:
-    """`parts` with each context image's answer text after its placement-order line (`build_prompt` puts that
-    line right after the image); unchanged if the lines are already there."""
-    from degusta_learn.task.prompt import ImagePart
-    lines = {name: f"The objects in {name}, written as an answer: {text}" for name, text in answers.items()}
-    if set(lines.values()) & {p for p in parts if isinstance(p, str)}:
-        return parts  # already there (a prompt adapted before)
-    out: list = []
-    for i, part in enumerate(parts):
-        out.append(part)
-        if isinstance(part, ImagePart) and part.name in answers:
-            after = parts[i + 1] if i + 1 < len(parts) else None
-            if not (isinstance(after, str) and after.startswith(f"Placement order in {part.name}:")):
-                raise DegustaError(f"prompt: context image {part.name} is not followed by its placement-order line")
-        elif i and isinstance(parts[i - 1], ImagePart) and parts[i - 1].name in answers:
-            out.append(lines[parts[i - 1].name])
-    return out
+                  style=prompt.style, modality=prompt.modality)
 
 
 def _compose(parts: list, groups: set[str], label: str) -> list:
