@@ -250,3 +250,12 @@ def test_quickstart_small_end_to_end_from_a_non_editable_install(wheel, tmp_path
     # Every config it ran is written beside the results, so each step can be re-run by hand.
     assert {p.name for p in (work / "quickstart" / "configs").glob("*.yaml")} >= {"learned_cpu.yaml",
                                                                                   "finetune_tiny_base_cpu.yaml"}
+
+
+def test_the_set_transformer_configs_choose_on_the_set_score_and_pair_up():
+    train = yaml.safe_load((SHIPPED_DIR / "set_transformer_cpu.yaml").read_text())
+    predict = yaml.safe_load((SHIPPED_DIR / "set_transformer_predict.yaml").read_text())
+    assert (train["trainer"]["monitor"], train["trainer"]["monitor_mode"]) == ("val/set_rmsd", "min")
+    assert train["trainer"]["early_stopping_patience"] >= 1  # early stopping watches the same set-aware score
+    assert predict["checkpoint"] == f"{train['trainer']['run_dir']}/{train['trainer']['run_name']}"
+    assert (predict["seed"], predict["dataset"], predict["method"]) == (train["seed"], train["dataset"], train["kind"])

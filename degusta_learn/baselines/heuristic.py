@@ -195,9 +195,12 @@ def copy_rows(ds: Dataset, context: list[Arrangement], table: Table) -> tuple[Ro
     return rows, {"source_trial": src.trial, "source_table": src.table}
 
 
-def consensus_rows(ds: Dataset, context: list[Arrangement], table: Table, min_support: float = 0.5) -> tuple[Rows, dict]:
+def consensus_rows(ds: Dataset, context: list[Arrangement], table: Table, min_support: float = 0.5,
+                   reference: Arrangement | None = None) -> tuple[Rows, dict]:
+    """`consensus`'s rows (module docstring) of `context` for `table`; `reference`: the arrangement the others are
+    matched to (default: the nearest context arrangement; `collaborative` passes its nearest neighbour's)."""
     cat = ds.catalog
-    ref = nearest_context(ds, context, table)
+    ref = reference if reference is not None else nearest_context(ds, context, table)
     ref_uv = relative_positions(ref, ds.tables[ref.table])
     groups = [[(p.object, ref_uv[i], p.rotation)] for i, p in enumerate(ref.placements)]
     for a in context:
@@ -229,7 +232,10 @@ def consensus_rows(ds: Dataset, context: list[Arrangement], table: Table, min_su
     return rows, {"reference_trial": ref.trial, "support": [round(support[i], 3) for i in keep]}
 
 
-def _run_context(cfg, ds: Dataset, episodes: list[Episode], rows_fn) -> list[Prediction]:
+def run_context(cfg, ds: Dataset, episodes: list[Episode], rows_fn) -> list[Prediction]:
+    """Predictions of a context-based method: `rows_fn(ds, context arrangements, target table)` -> (rows,
+    diagnostics) per episode, placed on the target table; episodes without context fall back to population_mean
+    (shared by `copy_nearest`, `consensus`, `slot_heuristic` and `collaborative`)."""
     population = None
     out = []
     for ep in episodes:
@@ -246,11 +252,11 @@ def _run_context(cfg, ds: Dataset, episodes: list[Episode], rows_fn) -> list[Pre
 
 
 def run_copy_nearest(cfg: CopyNearestConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    return _run_context(cfg, ds, episodes, copy_rows)
+    return run_context(cfg, ds, episodes, copy_rows)
 
 
 def run_consensus(cfg: ConsensusConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    return _run_context(cfg, ds, episodes, lambda d, c, t: consensus_rows(d, c, t, cfg.min_support))
+    return run_context(cfg, ds, episodes, lambda d, c, t: consensus_rows(d, c, t, cfg.min_support))
 
 
 RANDOM = MethodSpec(RandomConfig, run_random, "random objects at random spots and rotations on the target table")

@@ -9,7 +9,9 @@ Usage:
 
 Every modelling choice is documented in docs/data.md and in the module docstrings: style.py (what a
 latent style is), templates.py (how styles are drawn), realize.py (style -> arrangements),
-ratings.py (jitter-study ratings), simulated.py (the paper's 72 experiments), oracle.py (the floor).
+ratings.py (jitter-study ratings), simulated.py (the paper's 72 experiments), oracle.py (the oracle: each
+participant's own latent style), plausible.py (the rules a plausible table keeps; `--plausible`), posterior.py with
+posterior_model.py and posterior_prior.py (the achievable floor: the posterior predictive under the generator).
 """
 
 from degusta_learn.synth.generate import GENERATORS, generate_dataset

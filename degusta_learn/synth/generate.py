@@ -3,6 +3,7 @@
 Usage:
     degusta data generate naturalistic --out data/naturalistic [--seed 0] [--overwrite]
     degusta data generate simulated --out data/simulated
+    degusta data generate naturalistic --plausible --out data/naturalistic_plausible
 
     from degusta_learn.synth import generate_dataset
     generate_dataset("naturalistic", "data/naturalistic", seed=0)
@@ -49,8 +50,12 @@ DATASET = OutputKind("dataset", DATASET_FILES, check=_generated_by_us, merge=Fal
 """A generated dataset folder: only its own files, and a meta.json naming a degusta generator."""
 
 
-def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool = False) -> Path:
+def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool = False,
+                     plausible: bool = False) -> Path:
     """Write the `name` dataset ("naturalistic" or "simulated") to folder `out`; returns `out`.
+
+    `plausible` (naturalistic only): every table keeps the rules of plausible.py; off (the default), the files
+    are the default generator's, byte for byte.
 
     Raises DegustaError for an unknown name, or when `out` exists and is not an empty folder (unless
     `overwrite`, which replaces it only once the new folder is complete, and only when it is a dataset
@@ -59,11 +64,14 @@ def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool 
     """
     if name not in GENERATORS:
         raise DegustaError(f"unknown dataset {name!r} (expected one of {', '.join(GENERATORS)})")
+    if plausible and name != "naturalistic":
+        raise DegustaError(f"plausible: only the naturalistic generator has this option (not {name!r}); "
+                           "the simulated benchmark's tables are plausible already")
     seed = check_seed(seed)  # 0..2**32-1: meta.json then holds a seed `data validate` accepts
     out = Path(out)
     with write_folder(out, DATASET, replace=overwrite) as tmp:
         if name == "naturalistic":
-            ds, styles = naturalistic_with_styles(seed)
+            ds, styles = naturalistic_with_styles(seed, plausible=plausible)
         else:
             ds, styles, episodes = simulated_with_styles(seed)
             write_episodes(tmp / "episodes.jsonl", episodes)

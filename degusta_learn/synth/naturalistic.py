@@ -30,8 +30,13 @@ DESCRIPTION = ("SYNTHETIC stand-in for the DegustaBot naturalistic study: 199 si
                "jitter-study ratings. Not human data.")
 
 
-def naturalistic_with_styles(seed: int = 0, n_participants: int = N_PARTICIPANTS) -> tuple[Dataset, list[Style]]:
-    """The naturalistic dataset and the latent style of every participant."""
+def naturalistic_with_styles(seed: int = 0, n_participants: int = N_PARTICIPANTS,
+                             plausible: bool = False) -> tuple[Dataset, list[Style]]:
+    """The naturalistic dataset and the latent style of every participant.
+
+    `plausible`: every table keeps the rules of plausible.py (meta.json then says `"plausible": true`); off, the
+    output is exactly the default generator's, byte for byte.
+    """
     seed = check_seed(seed)  # 0..2**32-1: meta.json then holds a seed `data validate` accepts
     catalog = default_catalog()
     tables = {t.id: t for t in default_tables()}
@@ -41,7 +46,7 @@ def naturalistic_with_styles(seed: int = 0, n_participants: int = N_PARTICIPANTS
         style_rng, trial_rng, rating_rng = (np.random.default_rng(s)
                                             for s in np.random.SeedSequence([seed, i]).spawn(3))
         pid = f"p{i:03d}"
-        style = sample_style(style_rng, pid, catalog)
+        style = sample_style(style_rng, pid, catalog, plausible=plausible)
         styles.append(style)
         weights = taste_weights(style, catalog)
         for trial, t_index in enumerate(trial_rng.permutation(len(table_ids))):
@@ -53,10 +58,13 @@ def naturalistic_with_styles(seed: int = 0, n_participants: int = N_PARTICIPANTS
     meta = {"name": "naturalistic", "synthetic": True, "generator": "degusta_learn.synth.naturalistic",
             "seed": seed, "description": DESCRIPTION, "min_objects": MIN_OBJECTS,
             "latent_styles": "latent_styles.json"}
+    if plausible:  # only when on: the default's meta.json stays as it was
+        meta["plausible"] = True
+        meta["description"] = DESCRIPTION + " Every table keeps the plausibility rules (docs/data.md)."
     # The generator keeps the validator's rules: what it returns always loads (never written otherwise).
     return validate_dataset(Dataset(catalog, tables, arrangements, ratings, meta)), styles
 
 
-def naturalistic(seed: int = 0) -> Dataset:
+def naturalistic(seed: int = 0, plausible: bool = False) -> Dataset:
     """The naturalistic dataset (SYNTHETIC) in memory; see the module docstring."""
-    return naturalistic_with_styles(seed)[0]
+    return naturalistic_with_styles(seed, plausible=plausible)[0]

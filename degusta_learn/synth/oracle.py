@@ -3,8 +3,9 @@
 It predicts the style's *expected* arrangement (realize.expected_arrangement): the slots the person sets
 at least half the time, their favourite objects, at the style's anchor and spacing on the target table,
 with no noise. Only a synthetic dataset has latent styles (latent_styles.json, written by
-`degusta data generate`), so this is the floor no method can beat on that data: what is left of its
-error is the participant's own noise.
+`degusta data generate`), so this is an information ceiling, not an achievable floor: it knows the style that
+the context trials only hint at (`posterior` is the floor achievable from the contexts). What is left of its
+error is the participant's own noise, though a method can still beat it on a single episode.
 
 Usage:
     degusta predict --config configs/oracle.yaml
@@ -97,4 +98,4 @@ def run(cfg: OracleConfig, ds: Dataset, episodes: list[Episode]) -> list[Predict
 
 
 ORACLE = MethodSpec(OracleConfig, run, "the participant's latent style applied to the target table without "
-                                       "noise (synthetic data only): the floor no method can beat")
+                                       "noise (synthetic data only): an information ceiling")

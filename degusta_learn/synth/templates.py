@@ -22,6 +22,9 @@
 - **noise**: position log-uniform in [0.004, 0.02], rotation U[2, 12] deg, anchor U[0.01, 0.05],
   turn U[0, 6] deg, spacing U[0.02, 0.08], order swaps U[0, 0.25];
 - **ratings**: `rating_base` ~ U[60, 98] and a log-normal `rating_sensitivity` (see ratings.py).
+
+With `plausible=True`, `row` and `freeform` draw their types from the same prior conditioned on the rules of
+plausible.py, and always set their plates and a utensil per plate; every other draw is the same.
 """
 
 from __future__ import annotations
@@ -29,9 +32,10 @@ from __future__ import annotations
 import numpy as np
 
 from degusta_learn.scene import Catalog
+from degusta_learn.synth.plausible import core_mask, plausible_types, violations
 from degusta_learn.synth.ratings import sample_rating_traits
 from degusta_learn.synth.style import Noise, Setting, Slot, Style
-from degusta_learn.synth.taste import catalog_features
+from degusta_learn.synth.taste import TypeFeatures, catalog_features
 
 TEMPLATES = {"western": 0.30, "mirrored": 0.10, "minimal": 0.15, "multi": 0.13, "row": 0.12, "freeform": 0.20}
 ANCHORS = {"near_edge": 0.45, "centre": 0.25, "corner": 0.15, "side": 0.10, "far_edge": 0.05}
@@ -118,16 +122,20 @@ def _extent(t: str, rot: float, axis: int) -> float:
     return abs(w * np.cos(r)) + abs(length * np.sin(r)) if axis == 0 else abs(w * np.sin(r)) + abs(length * np.cos(r))
 
 
-def _row(rng, angle, round_rot) -> list[Spec]:
+def _row(rng, angle, round_rot, plausible: bool = False) -> list[Spec]:
     n = int(rng.integers(3, 7))
-    types = [_pick(rng, TYPE_PRIOR) for _ in range(n)]
+    types = plausible_types(rng, n, _type) if plausible else [_pick(rng, TYPE_PRIOR) for _ in range(n)]
+    n = len(types)
     rots = [round_rot if t in ("plate", "cup") else angle for t in types]
     axis = 0 if rng.random() < 0.75 else 1  # a horizontal line, or a vertical one
     gap = rng.uniform(0.012, 0.04)
     ext = [_extent(t, r, axis) for t, r in zip(types, rots)]
     pos = np.concatenate([[0.0], np.cumsum([(a + b) / 2 + gap for a, b in zip(ext[:-1], ext[1:])])])
     pos -= pos.mean()
-    p = [1.0, 1.0, 1.0] + [rng.uniform(0.3, 0.95) for _ in range(n - 3)]
+    if plausible:  # plates and a utensil per plate always set: plausible.core_mask
+        p = [1.0 if core else rng.uniform(0.3, 0.95) for core in core_mask(types)]
+    else:
+        p = [1.0, 1.0, 1.0] + [rng.uniform(0.3, 0.95) for _ in range(n - 3)]
     return [(t, float(c) if axis == 0 else 0.0, float(c) if axis == 1 else 0.0, r, pk, 0)
             for t, c, r, pk in zip(types, pos, rots, p)]
 
@@ -160,6 +168,40 @@ def _freeform(rng, round_rot) -> list[Spec]:
     return specs
 
 
+def _type(rng) -> str:
+    return _pick(rng, TYPE_PRIOR)
+
+
+def _freeform_plausible(rng, round_rot, attempts: int = 50) -> list[Spec]:
+    """`_freeform` with types drawn under the plausibility rules (plausible.py): a slot that finds no room is
+    dropped, and a draw whose placed slots break a rule (or are fewer than 3) is redrawn whole."""
+    from degusta_learn.scene import TYPE_SIZE
+
+    for _ in range(attempts):
+        types = plausible_types(rng, int(rng.integers(3, 9)), _type)
+        half = rng.uniform(0.14, 0.3)
+        placed, kept = [], []
+        for t in types:
+            r_k = max(TYPE_SIZE[t]) / 2
+            for _ in range(60):
+                c = rng.uniform(-half, half, size=2)
+                if all(np.hypot(*(c - q)) > r_k + rq + 0.01 for q, rq in placed):
+                    placed.append((c, r_k))
+                    kept.append((t, c))
+                    break
+        kept_types = [t for t, _ in kept]
+        if len(kept) >= MIN_SLOTS and not violations(kept_types):
+            break
+    else:  # never reached in practice: a plate with a fork and a cup always fit
+        kept_types = ["plate", "fork", "cup"]
+        kept = list(zip(kept_types, np.array([[0.0, 0.0], [-0.13, 0.0], [0.15, -0.15]])))
+    specs = []
+    for (t, c), core in zip(kept, core_mask(kept_types)):
+        rot = round_rot if t in ("plate", "cup") else float(rng.uniform(0, 360))
+        specs.append((t, float(c[0]), float(c[1]), rot, 1.0 if core else rng.uniform(0.4, 1.0), 0))
+    return specs
+
+
 def _anchor(rng) -> Setting:
     kind = _pick(rng, ANCHORS)
     side = 0.22 if rng.random() < 0.5 else 0.78
@@ -167,6 +209,15 @@ def _anchor(rng) -> Setting:
             "far_edge": (0.5, 0.25)}[kind]
     u, v = np.clip([u + rng.normal(0, 0.04), v + rng.normal(0, 0.04)], 0.12, 0.88)
     return Setting(float(u), float(v), 0.0)
+
+
+def favourite_logits(f: TypeFeatures, colors, materials, strictness: float) -> np.ndarray:
+    """(n,) log weights of the objects of one type as a style's favourite: popularity x exp((strictness + 1) x
+    taste). The favourites are drawn without replacement with these weights (Gumbel top-k), so the first
+    favourite of a type is the softmax of these logits."""
+    pop = np.log(f.colors @ [COLOR_PRIOR.get(c, 0.8) for c in f.color_names]) \
+        + np.log(f.materials @ [MATERIAL_PRIOR.get(m, 0.8) for m in f.material_names] / 2)
+    return pop + (strictness + 1) * f.taste(colors, materials)
 
 
 def _favourites(rng, catalog: Catalog, specs, colors, materials, strictness) -> list[int]:
@@ -178,9 +229,7 @@ def _favourites(rng, catalog: Catalog, specs, colors, materials, strictness) -> 
     ranked = {}
     for t, k in need.items():
         f = feats[t]
-        pop = np.log(f.colors @ [COLOR_PRIOR.get(c, 0.8) for c in f.color_names]) \
-            + np.log(f.materials @ [MATERIAL_PRIOR.get(m, 0.8) for m in f.material_names] / 2)
-        key = pop + (strictness + 1) * f.taste(colors, materials) + rng.gumbel(size=len(f.ids))
+        key = favourite_logits(f, colors, materials, strictness) + rng.gumbel(size=len(f.ids))
         ranked[t] = [int(f.ids[i]) for i in np.argsort(-key, kind="stable")[:k]]
     seen: dict[str, int] = {}
     out = []
@@ -190,8 +239,12 @@ def _favourites(rng, catalog: Catalog, specs, colors, materials, strictness) -> 
     return out
 
 
-def sample_style(rng: np.random.Generator, participant: str, catalog: Catalog) -> Style:
-    """Draw one synthetic participant's latent style (distributions in the module docstring)."""
+def sample_style(rng: np.random.Generator, participant: str, catalog: Catalog, plausible: bool = False) -> Style:
+    """Draw one synthetic participant's latent style (distributions in the module docstring).
+
+    `plausible`: `row` and `freeform` draw their types under the rules of plausible.py (the other templates keep
+    them already); off, the draws are exactly the default generator's.
+    """
     template = _pick(rng, TEMPLATES)
     angle = float((_pick(rng, UTENSIL_ANGLES) + rng.normal(0, 4)) % 360)
     round_rot = 0.0 if rng.random() < 0.8 else float(rng.uniform(0, 360))
@@ -207,9 +260,9 @@ def sample_style(rng: np.random.Generator, participant: str, catalog: Catalog) -
         settings, specs = _multi(rng, angle, round_rot)
         scale = float(rng.uniform(0.8, 1.0))
     elif template == "row":
-        specs = _row(rng, angle, round_rot)
+        specs = _row(rng, angle, round_rot, plausible)
     else:
-        specs = _freeform(rng, round_rot)
+        specs = _freeform_plausible(rng, round_rot) if plausible else _freeform(rng, round_rot)
     if rng.random() < 0.5:
         specs = [specs[i] for i in rng.permutation(len(specs))]
     n_colors = int(rng.choice([1, 2, 3], p=[0.5, 0.4, 0.1]))

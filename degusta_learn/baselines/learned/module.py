@@ -3,8 +3,10 @@
 Training minimizes `SlotModel.loss`. Validation does two things on the val participants' episodes: the
 same loss (`val/loss`), and a full prediction of every episode
 scored with `degusta_learn.metrics.score_prediction` exactly as `degusta evaluate` would — logged as
-`val/rmsd`, `val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`,
-`val/acceptable_0.10` and per context length (`val/rmsd_k4`, ...). Under DDP each rank scores its share of
+`val/set_rmsd` (the set-aware score that ranks methods: an unmatched object costs `SET_PENALTY`, so a short
+answer cannot look best; what the shipped configs' `trainer.monitor` picks best.ckpt by), `val/rmsd`,
+`val/object_accuracy`, `val/rmsd_unregistered`, `val/count_error`, `val/acceptable_0.05`, `val/acceptable_0.10`
+and per context length (`val/set_rmsd_k4`, `val/rmsd_k4`, ...). Under DDP each rank scores its share of
 the episodes and the per-episode rows are gathered, each episode counted once (`training.gather_unique_rows`),
 so the metrics equal a single-process validation's; `val/loss` is the mean of the ranks' batch means.
 
@@ -43,14 +45,16 @@ def population_pairs(population: dict) -> list:
 
 
 LOSS_TERMS = ("set", "object", "position", "rotation", "step")  # SlotModel.loss terms besides "loss"
-VAL_METRICS = ("object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "acceptable_0.05", "acceptable_0.10")
+VAL_METRICS = ("set_rmsd", "object_accuracy", "rmsd", "rmsd_unregistered", "count_error", "acceptable_0.05",
+               "acceptable_0.10")
+PER_CONTEXT = ("set_rmsd", "object_accuracy", "rmsd")  # also logged per validation context length (val/rmsd_k4)
 
 
 def monitor_keys(val_contexts) -> set[str]:
     """Every metric LearnedModule logs (what `trainer.monitor` may name), for these validation lengths."""
     keys = {"loss", "train/loss", "val/loss"} | {f"train/{t}" for t in LOSS_TERMS} | {f"val/loss_{t}" for t in LOSS_TERMS}
     keys |= {f"val/{m}" for m in VAL_METRICS}
-    keys |= {f"val/{m}_k{k}" for m in ("object_accuracy", "rmsd") for k in val_contexts}
+    keys |= {f"val/{m}_k{k}" for m in PER_CONTEXT for k in val_contexts}
     return keys
 
 
@@ -86,27 +90,30 @@ class LearnedModule(L.LightningModule):
             gt = dm.ds.arrangement(e.participant, e.target)
             xy = onto_surface(dm.ds.tables[gt.table], xy)
             s = score_prediction(dm.ds.catalog, gt, [Placement(ids[r], *p, float(a)) for r, p, a in zip(rows, xy, rot)])
-            ok = not math.isnan(s.rmsd)
+            ok, set_ok = not math.isnan(s.rmsd), not math.isnan(s.set_rmsd)  # set_rmsd: nan only for an empty truth
             self._val.append(torch.tensor([i, len(e.context), 1.0, s.object_accuracy, s.rmsd if ok else 0.0, float(ok),
                                            s.rmsd_unregistered if ok else 0.0, s.count_error,
-                                           ok and s.rmsd <= 0.05, ok and s.rmsd <= 0.10], dtype=torch.float64))
+                                           ok and s.rmsd <= 0.05, ok and s.rmsd <= 0.10,
+                                           s.set_rmsd if set_ok else 0.0, float(set_ok)], dtype=torch.float64))
 
     def on_validation_epoch_end(self) -> None:
         ks = sorted(set(self.trainer.datamodule.cfg.val_contexts))
-        rows = torch.stack(self._val) if self._val else torch.zeros(0, 10, dtype=torch.float64)
+        rows = torch.stack(self._val) if self._val else torch.zeros(0, 12, dtype=torch.float64)
         rows = gather_unique_rows(self, rows)[:, 1:]  # every rank's episodes, each once (DDP pads the shares)
-        # per context length: sums of [n, acc, rmsd, n_rmsd, rmsd_unreg, count_error, acc@.05, acc@.10]
+        # per context length: sums of [n, acc, rmsd, n_rmsd, rmsd_unreg, count_error, acc@.05, acc@.10, set_rmsd,
+        # n_set_rmsd]
         sums = torch.stack([rows[rows[:, 0] == k, 1:].sum(0) for k in ks] + [rows[:, 1:].sum(0)])
         for name, s in zip([f"_k{k}" for k in ks] + [""], sums):
-            n, nr = max(float(s[0]), 1.0), float(s[3])
-            metrics = {"object_accuracy": s[1] / n, "rmsd": s[2] / nr if nr else float("nan"),
+            n, nr, ns = max(float(s[0]), 1.0), float(s[3]), float(s[9])
+            metrics = {"set_rmsd": s[8] / ns if ns else float("nan"), "object_accuracy": s[1] / n,
+                       "rmsd": s[2] / nr if nr else float("nan"),
                        "rmsd_unregistered": s[4] / nr if nr else float("nan"), "count_error": s[5] / n,
                        "acceptable_0.05": s[6] / n, "acceptable_0.10": s[7] / n}
             for key, value in metrics.items():
-                if name and key not in ("object_accuracy", "rmsd"):
+                if name and key not in PER_CONTEXT:
                     continue
                 # gathered from every device: identical on every rank, so sync_dist's mean changes nothing
-                self.log(f"val/{key}{name}", float(value), prog_bar=not name and key in ("rmsd", "object_accuracy"),
+                self.log(f"val/{key}{name}", float(value), prog_bar=not name and key in ("set_rmsd", "object_accuracy"),
                          sync_dist=True)
         self._val = []
 
