@@ -6,6 +6,7 @@ Usage (CPU smoke run, a minute):
     degusta data export-sft --config configs/finetune_tiny_cpu.yaml --out exports/tiny_sft   # TRL / LLaMA-Factory
     degusta predict --config configs/baseline_copy_nearest.yaml
     degusta evaluate --dataset data/naturalistic --predictions runs/baseline_copy_nearest/predictions.jsonl --out runs/eval
+    degusta plan --config baseline_consensus --request request.json --out plan/   # a plan for a new table
     degusta quickstart                                   # everything above and more, one report
     degusta configs list                                 # the shipped configs; --config takes their names
 
@@ -69,8 +70,8 @@ class Result:
 def cmd_data_generate(args) -> str:
     from degusta_learn.synth import generate_dataset
 
-    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite)
-    return f"wrote the {args.name} dataset (SYNTHETIC) to {out}"
+    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite, plausible=args.plausible)
+    return f"wrote the {args.name} dataset (SYNTHETIC{', plausible tables' if args.plausible else ''}) to {out}"
 
 
 def cmd_data_export_sft(args) -> str:
@@ -180,6 +181,40 @@ def cmd_quickstart(args) -> Result:
     report = result.out
     return Result(f"quickstart finished: open {report / 'report.md'} (or {report / 'report.html'} in a browser)",
                   failed=result.failure_summary())
+
+
+def cmd_plan(args) -> str:
+    from degusta_learn.planner import Planner, read_request
+    from degusta_learn.planner.write import write_plan
+
+    @contextlib.contextmanager
+    def naming_the_file():  # a request's error ("request...: ...", as POST /plan answers) names the file first
+        try:
+            yield
+        except DegustaError as e:
+            if str(e).startswith("request"):
+                raise DegustaError(f"{args.request}: {e}") from None
+            raise
+
+    with naming_the_file():
+        request = read_request(args.request)  # a bad request fails before the method loads
+    planner = Planner.from_config(args.config, args.set)
+    if args.dry_run:
+        planner.dry_run(request)
+        return "dry run: nothing planned or written"
+    with naming_the_file():
+        plan = planner.plan(request)
+    out = write_plan(planner, plan, args.out)
+    note = f" ({plan.diagnostics['cost_usd']:.4f} USD)" if plan.diagnostics.get("cost_usd") else ""
+    return f"{planner.method}: {len(plan.steps)} steps{' (FAILED)' if plan.failed else ''}{note}; wrote plan.json and plan.png to {out}"
+
+
+def cmd_serve(args) -> str:
+    from degusta_learn.planner import Planner
+    from degusta_learn.planner.server import serve
+
+    serve(Planner.from_config(args.config, args.set, read_paths=False), host=args.host, port=args.port)
+    return "server stopped"
 
 
 def cmd_configs_list(args) -> str:
@@ -294,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing dataset folder that degusta generated (nothing else is ever deleted)")
+    p.add_argument("--plausible", action="store_true",
+                   help="naturalistic only: every table keeps the plausibility rules (bounded duplicates per type, "
+                        "a utensil per plate; docs/data.md); off: the default generator's files, byte for byte")
     p.set_defaults(func=cmd_data_generate)
     p = data.add_parser("validate", help="check a dataset folder; exit 0 or name the file/line/field")
     p.add_argument("dir", type=_in_arg)
@@ -318,6 +356,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--dry-run", action="store_true", help="count requests and cost; call nothing")
     p.set_defaults(func=cmd_predict)
+
+    p = verbs.add_parser("plan", help="a plan for a new table from a request (JSON) -> plan.json + plan.png")
+    p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP + " (a predict config)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--request", required=True, type=_in_arg, help="the plan request, a JSON file (docs/planner.md)")
+    p.add_argument("--out", required=True, type=_out_arg, help="the folder to write plan.json and plan.png into")
+    p.add_argument("--dry-run", action="store_true", help="what the plan would call and cost; call nothing")
+    p.set_defaults(func=cmd_plan)
+
+    p = verbs.add_parser("serve", help="plans over HTTP: POST /plan, GET /health, /openapi.json (FastAPI)")
+    p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP + " (a predict config)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--host", default="127.0.0.1", help="the address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=_int_in(0, 65535), default=8000, help="the port (default 8000)")
+    p.set_defaults(func=cmd_serve)
 
     p = verbs.add_parser("train", help="train a learned baseline or fine-tune a VLM from a YAML config")
     p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP)

@@ -22,7 +22,7 @@ LAYERS = {
     "evaluate": 8,
     "finetune": 9,
     "pretrain": 10,
-    "quickstart": 11, "cli": 11,
+    "quickstart": 11, "planner": 11, "cli": 11,
 }
 
 

@@ -25,7 +25,7 @@ class Placement:
 
     def to_json(self) -> dict:
         return {"object": self.object, "x": round(self.x, 6), "y": round(self.y, 6),
-                "rotation": round(self.rotation % 360.0, 4)}
+                "rotation": round(self.rotation % 360.0, 4) % 360.0}  # 359.99996 rounds to 360: back to 0
 
 
 @dataclass(frozen=True)

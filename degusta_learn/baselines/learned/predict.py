@@ -105,7 +105,7 @@ def predict_episodes(model: SlotModel, ds: Dataset, episodes: list[Episode], pop
         for e, rows, xy, rot in zip(chunk, *model.decode(batch, min_objects)):
             table = ds.arrangement(e.participant, e.target).table
             xy = onto_surface(ds.tables[table], xy)
-            placements = [Placement(ids[r], float(x), float(y), float(a)) for r, (x, y), a in zip(rows, xy, rot)]
+            placements = [Placement(ids[r], float(x), float(y), float(a) % 360.0) for r, (x, y), a in zip(rows, xy, rot)]
             out.append(Prediction(e.id, e.participant, e.target, method, placements, False, dict(diagnostics or {})))
     return out
 
