@@ -79,8 +79,8 @@ def resolve_episodes(cfg: PredictConfig, ds: Dataset) -> list[Episode]:
     return make_episodes(ds, cfg.context, cfg.split, cfg.seed)
 
 
-CHOICE_KEYS = ("checkpoint", "backend.name", "model.name", "model.adapter", "prompt_style", "decoding.constrained",
-               "decoding.n", "decoding.temperature", "decoding.aggregation")
+CHOICE_KEYS = ("checkpoint", "backend.name", "model.name", "model.adapter", "prompt_style", "modality",
+               "decoding.constrained", "decoding.n", "decoding.temperature", "decoding.aggregation")
 """Config keys a prediction's `choices` repeats where the method's config has them (as `--set` would name them):
 which weights answered and how their answers were decoded and combined."""
 
