@@ -46,6 +46,19 @@ class OptimConfig:
             raise DegustaError(f"optim.lr: expected > 0, got {self.lr}")
 
 
+def adamw_optimizers(model: torch.nn.Module, cfg: OptimConfig, total_steps: float) -> dict:
+    """Lightning's `configure_optimizers` answer for a model trained from scratch: AdamW with weight decay on the
+    matrices only (biases, LayerNorm and embedding weights are not decayed), and `lr_schedule` over `total_steps`."""
+    decay, no_decay = [], []
+    for mod in model.modules():
+        for p in mod.parameters(recurse=False):
+            plain = p.dim() < 2 or isinstance(mod, (torch.nn.Embedding, torch.nn.LayerNorm))
+            (no_decay if plain else decay).append(p)
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
+                             {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=(0.9, cfg.beta2))
+    return {"optimizer": opt, "lr_scheduler": lr_schedule(opt, cfg, total_steps)}
+
+
 def lr_schedule(optimizer: torch.optim.Optimizer, cfg: OptimConfig, total_steps: float) -> dict:
     """Lightning's `lr_scheduler` entry (stepped every optimizer step) for `cfg` over `total_steps`."""
     from transformers import get_constant_schedule_with_warmup, get_cosine_with_min_lr_schedule_with_warmup

@@ -30,7 +30,7 @@ import torch
 from degusta_learn.baselines.learned.features import Vocab, onto_surface
 from degusta_learn.baselines.learned.slot_model import ModelConfig, SlotModel
 from degusta_learn.metrics import score_prediction
-from degusta_learn.optim import OptimConfig, lr_schedule
+from degusta_learn.optim import OptimConfig, adamw_optimizers
 from degusta_learn.scene import Placement
 from degusta_learn.training import gather_unique_rows
 
@@ -119,12 +119,4 @@ class LearnedModule(L.LightningModule):
 
     # --- optimizer ---------------------------------------------------------------------------------------
     def configure_optimizers(self):
-        cfg = self.optim_cfg
-        decay, no_decay = [], []
-        for mod in self.model.modules():
-            for p in mod.parameters(recurse=False):
-                plain = p.dim() < 2 or isinstance(mod, (torch.nn.Embedding, torch.nn.LayerNorm))
-                (no_decay if plain else decay).append(p)
-        opt = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
-                                 {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr, betas=(0.9, cfg.beta2))
-        return {"optimizer": opt, "lr_scheduler": lr_schedule(opt, cfg, self.trainer.estimated_stepping_batches)}
+        return adamw_optimizers(self.model, self.optim_cfg, self.trainer.estimated_stepping_batches)
