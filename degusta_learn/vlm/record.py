@@ -259,6 +259,38 @@ def _retrain(path: Path) -> str:
             "step, trains no further and rewrites this file), or train again")
 
 
+SELECTION_FILE = "degusta_selection.json"
+"""In a best folder (`finetune/export.py`): the validation that chose its weights: monitor, mode, score, step, epoch,
+checkpoint, split ("val"), val_episodes, val_participants and `decoding` (the fine-tune's `decoding:` section, in
+predict's spelling: what the validation answers were generated with)."""
+ANSWER_DECODING_KEYS = ("constrained", "on_repeat", "max_new_tokens", "n", "aggregation", "temperature")
+"""The `decoding:` keys that change the scored answers (`report_unconstrained` only adds free-decoding counts)."""
+
+
+def selection_decoding(folder: str | os.PathLike | None):
+    """The `DecodingSettings` the validation that chose the weights in `folder` decoded with (its
+    `degusta_selection.json`), or None: no folder, no selection file (the last weights), or one written before the
+    decoding was recorded. A file that is there but unreadable is one `DegustaError` naming it."""
+    from degusta_learn.vlm.settings import DecodingSettings
+
+    path = Path(folder) / SELECTION_FILE if folder else None
+    if path is None or not path.is_file():
+        return None
+    data = read_json(path)
+    if not isinstance(data, dict) or "decoding" not in data:
+        return None
+    return from_dict(DecodingSettings, data["decoding"], where=str(path), prefix="decoding.").resolved(local=True)
+
+
+def decoding_differences(recorded, asked) -> list[str]:
+    """The `ANSWER_DECODING_KEYS` on which two `DecodingSettings` differ (`temperature` compared as sampled: null
+    is 0 at n = 1)."""
+    def value(d, key):
+        return d.sampling_temperature if key == "temperature" else getattr(d, key)
+
+    return [k for k in ANSWER_DECODING_KEYS if value(recorded, k) != value(asked, k)]
+
+
 def locate_record(*folders: str | os.PathLike | None) -> Path | None:
     """The record file of a model given as (adapter folder, model folder): the first folder's fine-tuning
     record, else the next one's, else a base record likewise; None when there is none (any other model)."""
