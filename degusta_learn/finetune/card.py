@@ -109,6 +109,20 @@ def _fmt(value) -> str:
     return "-" if value is None or (isinstance(value, float) and not math.isfinite(value)) else f"{value:.4g}"
 
 
+def _selection_set(selection: dict) -> str:
+    """", on 16 validation episodes of 12 participants (split val)" as far as the selection record says."""
+    episodes, participants = selection.get("val_episodes"), selection.get("val_participants")
+    if episodes is None:
+        return ""
+    of = f" of {_count(participants, 'participant')}" if participants is not None else ""
+    return f", on {_count(episodes, 'validation episode')}{of} (split {selection.get('split', 'val')})"
+
+
+def _decoding_text(decoding: dict) -> str:
+    """A `decoding:` section as predict's YAML flow mapping: `{constrained: true, n: 1, ...}`."""
+    return yaml.safe_dump(decoding, default_flow_style=True, sort_keys=False, width=10**6).strip()
+
+
 def card_text(cfg, adapter: bool, selection: dict | None, metrics: dict | None) -> str:
     base = card_base_model(cfg.model.name)
     what = {"lora": f"LoRA adapter (r={cfg.lora.r})", "qlora": f"QLoRA adapter (r={cfg.lora.r}, 4-bit base)",
@@ -131,7 +145,13 @@ def card_text(cfg, adapter: bool, selection: dict | None, metrics: dict | None) 
               "reads the dataset from its `dataset:` key)", "", "## Validation", ""]
     if selection is not None:
         lines.append(f"These are the weights of the validation with the best `{selection['monitor']}` "
-                     f"({selection['mode']}), at step {selection['step']} (epoch {selection['epoch']}).")
+                     f"({selection['mode']}: {_fmt(selection.get('score'))}), at step {selection['step']} "
+                     f"(epoch {selection['epoch']}){_selection_set(selection)}.")
+        if selection.get("decoding"):
+            lines += ["", f"Its answers were decoded as {md_code(_decoding_text(selection['decoding']))} "
+                      "(`degusta_selection.json`, `decoding`); a predict config that decodes otherwise is warned, "
+                      "and `decoding_from: adapter` decodes exactly so (docs/finetune.md, \"Selection that matches "
+                      "deployment\")."]
     else:
         lines.append("These are the last weights of the run (not selected by validation).")
     shown = [(label, metrics.get(k)) for k, label in CARD_METRICS if metrics and k in metrics]

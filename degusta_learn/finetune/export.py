@@ -8,7 +8,9 @@ A fine-tuning run folder holds two exports of the weights, both loadable without
   best `trainer.monitor` so far (`val/set_rmsd` in every shipped config). Rewritten each time the monitor
   improves (`FinetuneModule.on_validation_end`, rank 0) and checked against `best.ckpt` at the end of the
   run (`sync_best`: an export a kill interrupted is redone from `best.ckpt`). This is what the predict
-  configs load. Its `degusta_selection.json` says which validation it comes from (monitor, score, step).
+  configs load. Its `degusta_selection.json` says which validation it comes from (monitor, score, step, split,
+  the number of validation episodes and participants) and the decoding that validation used (`decoding`, in
+  predict's spelling): `degusta predict` warns when its own decoding differs; `decoding_from: adapter` uses it.
 
 Every export also gets `degusta_finetune.json` (`finetune.train.write_meta`: how prompts were built), the resolved
 config (`finetune_config.yaml`) and a model card (`README.md`: finetune/card.py) that the Hub and peft read.
@@ -31,6 +33,7 @@ from degusta_learn.files.folders import OutputKind, write_folder
 from degusta_learn.files.jsonio import atomic_write_json, read_json
 from degusta_learn.training import BEST
 from degusta_learn.finetune.config import FinetuneConfig
+from degusta_learn.vlm.record import SELECTION_FILE  # in a best folder: the validation that chose it (re-exported)
 
 LAST_DIRS = {True: "adapter", False: "model"}
 """Folder of the last weights, by `module.lora`."""
@@ -39,8 +42,6 @@ BEST_DIRS = {True: "best_adapter", False: "best_model"}
 MODEL_FOLDER = OutputKind("model folder", ("*.safetensors", "*.bin", "*.json", "*.txt", "*.jinja", "*.model",
                                            "*.yaml", "README.md"))
 """What `save_pretrained` (model, processor, PEFT adapter) and degusta write into a model folder."""
-SELECTION_FILE = "degusta_selection.json"
-"""In a best folder: {"monitor", "mode", "score", "step", "epoch", "checkpoint"} of the validation it comes from."""
 
 
 def write_weights(module, out: Path, selection: dict | None = None) -> Path:
@@ -94,9 +95,27 @@ def best_score(trainer) -> tuple[str, float] | None:
 
 
 def selection_record(module, score: float, step: int, epoch: int) -> dict:
+    """The `SELECTION_FILE` of a best folder: which validation chose the weights (monitor, its value, step), on
+    what (split "val", the number of episodes and of participants) and decoded how (`decoding`: the fine-tune's
+    `decoding:` section, in predict's spelling, so that `degusta predict` can compare it or use it exactly)."""
+    import dataclasses
+
     t = module.cfg.trainer
+    episodes, participants = validation_set(module)
     return {"monitor": t.monitor, "mode": t.monitor_mode, "score": score, "step": step, "epoch": epoch,
-            "checkpoint": BEST}
+            "checkpoint": BEST, "split": "val", "val_episodes": episodes, "val_participants": participants,
+            "decoding": dataclasses.asdict(module.cfg.decoding)}
+
+
+def validation_set(module) -> tuple[int | None, int | None]:
+    """(episodes, distinct participants) of the module's validation set (its datamodule's `val`); (None, None) when
+    the module is not attached to a trainer with one."""
+    try:
+        val = module.trainer.datamodule.val
+        episodes = list(getattr(val, "episodes", None) or [])
+    except (AttributeError, RuntimeError):  # RuntimeError: a LightningModule not attached to a Trainer
+        return None, None
+    return len(episodes), len({e.participant for e in episodes})
 
 
 def save_best(module, run_dir: Path, score: float) -> Path:

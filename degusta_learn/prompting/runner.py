@@ -114,6 +114,10 @@ class ZeroShotConfig(PredictConfig):
     """Side in pixels the lifted images are rendered at (more pixels: more image tokens); a fine-tuned model's own."""
     image_format: str = "jpeg"
     """jpeg or png (the names in the prompt follow: final_state_1.jpg / .png)."""
+    decoding_from: Literal["config", "adapter"] = "config"
+    """config: decode as `decoding:` says (a warning names the keys where it differs from the validation decoding that
+    selected `model.adapter`); adapter: decode exactly as that validation did (the `decoding` of the adapter's
+    degusta_selection.json, replacing the `decoding:` section; hf backend, a best_adapter/ or best_model/ folder)."""
     prompt_style: Literal["clarified", "paper"] = "clarified"
     """The prompt's text (task.prompt.PROMPT_STYLES): clarified (the appendix prompt with cell naming, the object types,
     the coordinate convention and the placement-order request added) or paper (the appendix prompts verbatim)."""
@@ -152,6 +156,13 @@ class ZeroShotConfig(PredictConfig):
         if not cls.local_decoding:  # a service or a recorded file answers: the local model's keys are refused
             check_api_settings(self.model, self.decoding, self.backend.name)
         self.decoding = self.decoding.resolved(local=cls.local_decoding)
+        if cls.local_decoding:  # the validation decoding that selected the adapter: compared, or taken (decoding_from)
+            from degusta_learn.prompting.backends.hf import adapter_decoding
+
+            self.decoding = adapter_decoding(self.model, self.decoding, self.decoding_from)
+        elif self.decoding_from != "config":
+            raise DegustaError(f"decoding_from: adapter reads a local model's adapter (backend.name: hf), not the "
+                               f"{self.backend.name} backend's; set decoding_from: config")
         if not self.model.name:
             self.model = dataclasses.replace(self.model, name=cls.default_model)  # "": check_run says it is required
         checks = [("concurrency", self.concurrency >= 1, ">= 1"), ("render_size", self.render_size >= 64, ">= 64"),

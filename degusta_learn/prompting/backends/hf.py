@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.prompting.backends.base import Backend, BackendConfig
@@ -195,6 +196,44 @@ class HFBackend(Backend):
                                     max_new_tokens=max_tokens, constrained=self.constrained, grammar=grammar,
                                     seed=seed, on_repeat=self.on_repeat,
                                     free_pass=self.report_unconstrained)  # free answers where the grammar changed one
+
+
+def adapter_decoding(model: ModelSettings, decoding: DecodingSettings, decoding_from: str = "config") -> DecodingSettings:
+    """The decoding a predict run uses with `model.adapter`, given the validation that chose it (`vlm.record`,
+    `degusta_selection.json` of a best folder, whose `decoding` is the fine-tune's `decoding:` section).
+
+    `decoding_from: config` (the default): the config's `decoding`, as it is; when it differs from the recorded
+    selection decoding on a key that changes the answers, one warning line on stderr names those keys.
+    `decoding_from: adapter`: the recorded selection decoding exactly (refused, naming the key, when the adapter
+    records none: no `model.adapter`, the last weights `adapter/`, or a folder exported before it was recorded)."""
+    import sys
+
+    from degusta_learn.vlm.hub import metadata_folder
+    from degusta_learn.vlm.record import SELECTION_FILE, decoding_differences, selection_decoding
+
+    if decoding_from == "adapter":
+        folder = metadata_folder(model.adapter, "model.adapter", adapter=True) if model.adapter else None
+        recorded = selection_decoding(folder)
+        if recorded is None:
+            where = f"{folder / SELECTION_FILE} has no 'decoding'" if folder else "model.adapter is not set"
+            raise DegustaError(f"decoding_from: adapter needs the decoding its selection was made with ({where}: "
+                               "it is written into a best folder, best_adapter/ or best_model/, by degusta train); "
+                               "point model.adapter at a best folder, or set decoding_from: config")
+        return recorded
+    local = Path(str(model.adapter)).expanduser() if model.adapter else None  # no download to warn
+    recorded = selection_decoding(local) if local is not None and local.is_dir() else None
+    differing = decoding_differences(recorded, decoding) if recorded is not None else []
+    if differing:
+        shown = ", ".join(f"{k}: {_shown(recorded, k)} vs {_shown(decoding, k)}" for k in differing)
+        print(f"degusta: warning: decoding: differs from the validation decoding that selected model.adapter "
+              f"({local / SELECTION_FILE}) on {shown} (selected vs here); decoding_from: adapter predicts as "
+              "it was selected (docs/finetune.md, \"Selection that matches deployment\")", file=sys.stderr)
+    return decoding
+
+
+def _shown(decoding: DecodingSettings, key: str) -> str:
+    value = decoding.sampling_temperature if key == "temperature" else getattr(decoding, key)
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 @functools.lru_cache(maxsize=16)
