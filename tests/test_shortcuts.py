@@ -4,7 +4,6 @@ on hand-made cases (hand-computed values) and on the naturalistic test split wit
 
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,9 +14,9 @@ from degusta_learn.evaluate.summary import rank_methods, summarize
 from degusta_learn.metrics import SET_PENALTY as C
 from degusta_learn.metrics import score_many
 from degusta_learn.scene import Arrangement, Placement, Prediction, load_dataset, make_episodes
+from degusta_learn.synth import generate_dataset
 
 bench = load_benchmark("bench_shortcuts")
-DATA = Path(__file__).resolve().parents[1] / "data" / "naturalistic"
 SHORTCUTS = ("truncate to 1", "truncate to 2", "truncate to 3", "pad +1", "pad x2", "whole catalog",
              "constant (first answer)", "constant (best table)", "reverse order", "rotations 0")
 UNCHANGED = ("reverse order", "rotations 0")
@@ -25,8 +24,9 @@ UNCHANGED = ("reverse order", "rotations 0")
 
 
 @pytest.fixture(scope="module")
-def ds():
-    return load_dataset(DATA)
+def ds(tmp_path_factory):
+    """The embedded naturalistic default, generated here (a fresh clone has no data/ folder; 1-2 s)."""
+    return load_dataset(generate_dataset("naturalistic", tmp_path_factory.mktemp("data") / "naturalistic"))
 
 
 # -- hand-made: one ground truth of 4 objects, hand-computed scores -------------------------------------------------
