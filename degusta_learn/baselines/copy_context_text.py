@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from degusta_learn.baselines.heuristic import PopulationModel, nearest_context, target_table
+from degusta_learn.baselines.heuristic import nearest_context, target_table, with_population_fallback
 from degusta_learn.methods import MethodSpec, PredictConfig
 from degusta_learn.render.grid import Grid
 from degusta_learn.scene import Arrangement, Dataset, Episode, Prediction
@@ -79,16 +79,8 @@ def copied_prediction(cfg: CopyContextTextConfig, ds: Dataset, ep: Episode, grid
 
 def run_copy_context_text(cfg: CopyContextTextConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
     grid = Grid(cfg.grid.rows, cfg.grid.cols)
-    population = None
-    out = []
-    for ep in episodes:
-        if not ep.context:
-            population = population or PopulationModel(ds, cfg.seed)
-            out.append(population.predict(cfg, ep, fallback="population_mean",
-                                          reason="no context table to copy (context length 0)"))
-            continue
-        out.append(copied_prediction(cfg, ds, ep, grid))
-    return out
+    return with_population_fallback(cfg, ds, episodes, lambda ep: copied_prediction(cfg, ds, ep, grid),
+                                    reason="no context table to copy (context length 0)")
 
 
 COPY_CONTEXT_TEXT = MethodSpec(CopyContextTextConfig, run_copy_context_text,

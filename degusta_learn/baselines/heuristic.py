@@ -232,23 +232,32 @@ def consensus_rows(ds: Dataset, context: list[Arrangement], table: Table, min_su
     return rows, {"reference_trial": ref.trial, "support": [round(support[i], 3) for i in keep]}
 
 
-def run_context(cfg, ds: Dataset, episodes: list[Episode], rows_fn) -> list[Prediction]:
-    """Predictions of a context-based method: `rows_fn(ds, context arrangements, target table)` -> (rows,
-    diagnostics) per episode, placed on the target table; episodes without context fall back to population_mean
-    (shared by `copy_nearest`, `consensus`, `slot_heuristic` and `collaborative`)."""
+def with_population_fallback(cfg, ds: Dataset, episodes: list[Episode], predict_one,
+                             reason: str = "no context arrangements (context length 0)") -> list[Prediction]:
+    """`predict_one(ep)` for every episode with context; an episode without context gets population_mean's
+    prediction, marked as that fallback with `reason` (the population is built once, on first need)."""
     population = None
     out = []
     for ep in episodes:
         if not ep.context:
             population = population or PopulationModel(ds, cfg.seed)
-            out.append(population.predict(cfg, ep, fallback="population_mean",
-                                          reason="no context arrangements (context length 0)"))
-            continue
+            out.append(population.predict(cfg, ep, fallback="population_mean", reason=reason))
+        else:
+            out.append(predict_one(ep))
+    return out
+
+
+def run_context(cfg, ds: Dataset, episodes: list[Episode], rows_fn) -> list[Prediction]:
+    """Predictions of a context-based method: `rows_fn(ds, context arrangements, target table)` -> (rows,
+    diagnostics) per episode, placed on the target table; episodes without context fall back to population_mean
+    (shared by `copy_nearest`, `consensus`, `slot_heuristic` and `collaborative`)."""
+    def predict_one(ep: Episode) -> Prediction:
         table = target_table(ds, ep)
         context = [ds.arrangement(ep.participant, t) for t in ep.context]
         (objects, uv, rot), diagnostics = rows_fn(ds, context, table)
-        out.append(_prediction(cfg, ep, place_on(table, ds.catalog, objects, uv, rot), **diagnostics))
-    return out
+        return _prediction(cfg, ep, place_on(table, ds.catalog, objects, uv, rot), **diagnostics)
+
+    return with_population_fallback(cfg, ds, episodes, predict_one)
 
 
 def run_copy_nearest(cfg: CopyNearestConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:

@@ -15,16 +15,12 @@ from typing import Any
 
 from degusta_learn.planner.request import At, shown
 from degusta_learn.scene import Placement, Table
+from degusta_learn.scene.types import normalized_rotation
 from degusta_learn.scene.validate import MAX_ID, get
 
 PLAN_FORMAT = "degusta plan"
 PLAN_VERSION = 1
 
-
-def normalized_rotation(degrees: float) -> float:
-    """`degrees` in [0, 360), rounded to 4 decimals as every JSON file the toolkit writes: 359.99999 and 360 are 0."""
-    value = round(float(degrees) % 360.0, 4)
-    return 0.0 if value >= 360.0 else value + 0.0  # + 0.0: no -0.0
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ def create_app(planner: Planner, max_body: int = MAX_REQUEST_BYTES):
     """The FastAPI app serving `planner` (module docstring)."""
     from fastapi import FastAPI, Request
     from fastapi.responses import JSONResponse
-    from starlette.concurrency import run_in_threadpool
+    from fastapi.concurrency import run_in_threadpool  # starlette's, re-exported: fastapi is what we declare
 
     from degusta_learn import __version__
 

@@ -14,6 +14,12 @@ import numpy as np
 TASKS = ("reconstruction", "generalization")
 
 
+def normalized_rotation(degrees: float) -> float:
+    """`degrees` in [0, 360), rounded to 4 decimals as every JSON file the toolkit writes: 359.99999 and 360 are 0."""
+    value = round(float(degrees) % 360.0, 4)
+    return 0.0 if value >= 360.0 else value + 0.0  # + 0.0: no -0.0
+
+
 @dataclass(frozen=True)
 class Placement:
     """One object put on the table: which object, where (centroid) and how rotated."""
@@ -25,7 +31,7 @@ class Placement:
 
     def to_json(self) -> dict:
         return {"object": self.object, "x": round(self.x, 6), "y": round(self.y, 6),
-                "rotation": round(self.rotation % 360.0, 4) % 360.0}  # 359.99996 rounds to 360: back to 0
+                "rotation": normalized_rotation(self.rotation)}
 
 
 @dataclass(frozen=True)
