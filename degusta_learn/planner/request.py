@@ -14,7 +14,6 @@ given twice).
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -24,6 +23,7 @@ import numpy as np
 from degusta_learn.errors import DegustaError
 from degusta_learn.scene import Arrangement, Placement
 from degusta_learn.scene.validate import MAX_ID, MAX_TRIAL, Where, get
+from degusta_learn.webio import shown, strict_json
 
 MAX_REQUEST_BYTES = 2**20
 """Bytes of one request (a file for `degusta plan`, a body for `POST /plan`): a 125-object catalog, 8 arrangements
@@ -46,7 +46,6 @@ MAX_METRES = 100.0
 """The largest table side in metres."""
 MIN_SURFACE_AREA = 0.01
 """Area of a surface polygon, as a fraction of the table image (the dataset format's bound: a plate needs it)."""
-MAX_INT_DIGITS = 20
 
 LIMITS = {"request_bytes": MAX_REQUEST_BYTES, "context_arrangements": MAX_CONTEXT,
           "placements_per_arrangement": MAX_PLACEMENTS, "objects_on_hand": MAX_OBJECTS, "n_objects": MAX_STEPS,
@@ -74,12 +73,6 @@ class At(Where):
 
     def __truediv__(self, name: str | int) -> At:
         return At(self.key(name))
-
-
-def shown(value: Any, n: int = 60) -> str:
-    """repr of a value for a message, cut short."""
-    text = repr(value)
-    return text if len(text) <= n else f"{text[:n - 10]}... ({len(text)} characters)"
 
 
 @dataclass(frozen=True)
@@ -336,39 +329,6 @@ def _placements(items: list, at: At) -> list[Placement]:
     return out
 
 
-class _BadJSON(ValueError):
-    pass
-
-
-def _no_constant(name: str):
-    raise _BadJSON(f"{name} is not a number JSON allows (expected a finite number)")
-
-
-def _int(text: str) -> int:
-    if len(text.lstrip("-")) > MAX_INT_DIGITS:
-        raise _BadJSON(f"an integer of {len(text.lstrip('-'))} digits is out of range")
-    return int(text)
-
-
-def _float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value):
-        raise _BadJSON(f"{shown(text, 30)} overflows to infinity (expected a finite number)")
-    return value
-
-
-def _pairs(pairs: list) -> dict:
-    obj = dict(pairs)
-    if len(obj) != len(pairs):
-        seen: set = set()
-        dup = next(k for k, _ in pairs if k in seen or seen.add(k))
-        raise _BadJSON(f"the key {shown(dup, 40)} is given twice in one object")
-    return obj
-
-
-_DECODER = json.JSONDecoder(parse_constant=_no_constant, parse_int=_int, parse_float=_float, object_pairs_hook=_pairs)
-
-
 def too_large(size: int, limit: int = MAX_REQUEST_BYTES, read: bool = False) -> str:
     """The one line for a request over `limit` bytes (`read`: `size` is what was read of a body of unknown length)."""
     amount = f"more than {limit:,} bytes" if read else f"{size:,} bytes"
@@ -380,18 +340,7 @@ def loads_request(data: bytes) -> PlanRequest:
     nesting) and check it (`PlanRequest.from_json`); the one-line DegustaError of the CLI and of HTTP alike."""
     if len(data) > MAX_REQUEST_BYTES:
         raise DegustaError(too_large(len(data)))
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise DegustaError(f"request: not UTF-8 text (byte {data[e.start]:#04x} at offset {e.start})") from None
-    try:
-        obj = _DECODER.decode(text)
-    except json.JSONDecodeError as e:
-        raise DegustaError(f"request: invalid JSON at line {e.lineno} column {e.colno} ({e.msg})") from None
-    except _BadJSON as e:
-        raise DegustaError(f"request: invalid JSON ({e})") from None
-    except RecursionError:
-        raise DegustaError("request: invalid JSON (nested too deeply)") from None
+    obj = strict_json(data)
     return PlanRequest.from_json(obj)
 
 

@@ -26,6 +26,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.planner.planner import BackendUnavailable, Planner
 from degusta_learn.planner.request import LIMITS, MAX_REQUEST_BYTES, too_large
 from degusta_learn.planner.schema import ERROR_SCHEMA, PLAN_SCHEMA, REQUEST_SCHEMA
+from degusta_learn.webio import BodyTooLarge, read_body
 
 LIMIT_CONCURRENCY = 64
 """Open connections the server accepts at once (more get 503): bounds the bodies held in memory."""
@@ -73,19 +74,14 @@ def create_app(planner: Planner, max_body: int = MAX_REQUEST_BYTES):
         openapi_extra={"requestBody": {"required": True,
                                        "content": {"application/json": {"schema": REQUEST_SCHEMA}}}})
     async def plan(request: Request):
-        declared = request.headers.get("content-length")
-        if declared is not None:
-            if not declared.strip().isdigit():
-                return error(400, f"request: Content-Length {declared[:40]!r} is not a number of bytes")
-            if int(declared) > max_body:
-                return error(413, too_large(int(declared), max_body))
-        data = bytearray()
-        async for chunk in request.stream():
-            data += chunk
-            if len(data) > max_body:
-                return error(413, too_large(len(data), max_body, read=True))
         try:
-            result = await run_in_threadpool(planner.plan, bytes(data))
+            data = await read_body(request, max_body, lambda size, read: too_large(size, max_body, read=read))
+        except BodyTooLarge as e:
+            return error(413, str(e))
+        except DegustaError as e:
+            return error(400, str(e))
+        try:
+            result = await run_in_threadpool(planner.plan, data)
         except BackendUnavailable as e:
             return error(503, error_line(e))
         except DegustaError as e:
