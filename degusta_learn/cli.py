@@ -7,6 +7,7 @@ Usage (CPU smoke run, a minute):
     degusta predict --config configs/baseline_copy_nearest.yaml
     degusta evaluate --dataset data/naturalistic --predictions runs/baseline_copy_nearest/predictions.jsonl --out runs/eval
     degusta plan --config baseline_consensus --request request.json --out plan/   # a plan for a new table
+    degusta collect --dataset studies/lab1 --new         # the browser study: your participants' own data
     degusta quickstart                                   # everything above and more, one report
     degusta configs list                                 # the shipped configs; --config takes their names
 
@@ -217,6 +218,12 @@ def cmd_serve(args) -> str:
     return "server stopped"
 
 
+def cmd_collect(args) -> str:
+    from degusta_learn.collect.run import collect
+
+    return collect(args.dataset, args.config, args.set, new=args.new, host=args.host, port=args.port)
+
+
 def cmd_configs_list(args) -> str:
     from degusta_learn.shipped import SHIPPED_DIR, list_configs
 
@@ -371,6 +378,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="the address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=_int_in(0, 65535), default=8000, help="the port (default 8000)")
     p.set_defaults(func=cmd_serve)
+
+    p = verbs.add_parser("collect", help="the browser study: participants set tables and rate them -> a dataset "
+                                         "folder (docs/collect.md)")
+    p.add_argument("--dataset", required=True, type=_out_arg, help="the study folder: its catalog and tables are "
+                   "what participants set; arrangements.jsonl and ratings.jsonl are appended to it")
+    p.add_argument("--new", action="store_true", help="make a new study folder with the embedded default's "
+                   "catalog and tables")
+    p.add_argument("--config", type=_config_arg, default=None, help=CONFIG_HELP + " (a study config; default: "
+                   "collect_study)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--host", default="127.0.0.1", help="the address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=_int_in(0, 65535), default=8765, help="the port (default 8765)")
+    p.set_defaults(func=cmd_collect)
 
     p = verbs.add_parser("train", help="train a learned baseline or fine-tune a VLM from a YAML config")
     p.add_argument("--config", required=True, type=_config_arg, help=CONFIG_HELP)

@@ -12,7 +12,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "degusta_learn"
 
 LAYERS = {
     "errors": 0, "names": 0, "textsafe": 0, "devices": 0, "__init__": 0,
-    "files": 1, "config": 1, "optim": 1, "shipped": 1,
+    "files": 1, "config": 1, "optim": 1, "shipped": 1, "webio": 1,
     "scene": 2, "metrics": 2,
     "render": 3,
     "task": 4,
@@ -22,7 +22,7 @@ LAYERS = {
     "evaluate": 8,
     "finetune": 9,
     "pretrain": 10,
-    "quickstart": 11, "planner": 11, "cli": 11,
+    "quickstart": 11, "planner": 11, "collect": 11, "cli": 11,
 }
 
 

@@ -41,6 +41,11 @@ def test_every_config_parses_against_its_command(path):
     assert text.lstrip().startswith("#") and "degusta " in text.split("\n", 3)[0] + text.split("\n", 3)[1], \
         f"{path.name} must open with a comment giving its command"
     raw = read_yaml(path)
+    if raw.get("kind") == "collect":  # the browser study's config (degusta collect)
+        from degusta_learn.collect import StudyConfig
+
+        from_dict(StudyConfig, raw, where=str(path))
+        return
     if "kind" in raw:  # train configs (they may also name the prompt `method` they learn)
         spec = get_trainer(raw["kind"])
     elif "method" in raw:

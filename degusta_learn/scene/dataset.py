@@ -117,16 +117,42 @@ def load_dataset(root: str | Path) -> Dataset:
         if root.exists() or root.is_symlink():
             raise DegustaError(f"{root}: not a dataset folder (not a readable folder)")
         raise DegustaError(f"{root}: dataset folder not found")
-    meta = _parse_meta(read_json(root / "meta.json") if _present(root / "meta.json") else {}, root / "meta.json", root)
-    vocab = _vocabulary(meta, root / "meta.json")
-    catalog = _parse_catalog(read_json(root / "catalog.json"), root / "catalog.json", root, vocab)
-    tables = _parse_tables(read_json(root / "tables.json"), root / "tables.json", root)
+    meta, catalog, tables = load_parts(root)
     arrangements = _parse_arrangements(read_jsonl(root / "arrangements.jsonl"), root / "arrangements.jsonl",
                                        catalog, tables, meta.get("min_objects", DEFAULT_MIN_OBJECTS))
     ratings = None
     if _present(root / "ratings.jsonl"):
         ratings = _parse_ratings(read_jsonl(root / "ratings.jsonl"), root / "ratings.jsonl", arrangements)
     return Dataset(catalog, tables, arrangements, ratings, meta, root)
+
+
+def load_parts(root: Path) -> tuple[dict, Catalog, dict[int, Table]]:
+    """(meta, catalog, tables) of a dataset folder, checked as `load_dataset` checks them: what a folder holds before
+    anyone's arrangement (a study of `degusta collect`)."""
+    meta = _parse_meta(read_json(root / "meta.json") if _present(root / "meta.json") else {}, root / "meta.json", root)
+    vocab = _vocabulary(meta, root / "meta.json")
+    catalog = _parse_catalog(read_json(root / "catalog.json"), root / "catalog.json", root, vocab)
+    tables = _parse_tables(read_json(root / "tables.json"), root / "tables.json", root)
+    return meta, catalog, tables
+
+
+def check_arrangements(lines, path: Path, catalog: Catalog, tables: dict[int, Table],
+                       min_objects: int = DEFAULT_MIN_OBJECTS) -> list[Arrangement]:
+    """(line number, entry) pairs of arrangements.jsonl checked by the dataset's rules (errors name `path`, the line
+    and the field); at least one entry."""
+    return _parse_arrangements(lines, path, catalog, tables, min_objects)
+
+
+def check_ratings(lines, path: Path, arrangements=None) -> list[Rating]:
+    """(line number, entry) pairs of ratings.jsonl checked by the dataset's rules (with `arrangements`: each rates
+    one of them)."""
+    return _parse_ratings(lines, path, arrangements)
+
+
+def has_file(path: Path) -> bool:
+    """Whether an optional file of a dataset is there (anything at the path counts, a broken link too: it is then
+    read and fails loudly)."""
+    return _present(path)
 
 
 def dataset_identity(ds: Dataset) -> str:
