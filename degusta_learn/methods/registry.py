@@ -56,6 +56,7 @@ METHODS: dict[str, str] = {
     "logma": "degusta_learn.prompting.runner:LOGMA",
     "mouma": "degusta_learn.prompting.runner:MOUMA",
     "mogma": "degusta_learn.prompting.runner:MOGMA",
+    "text_llm": "degusta_learn.prompting.text_llm:TEXT_LLM",
     "learned": "degusta_learn.baselines.learned:METHOD",
     "set_transformer": "degusta_learn.baselines.set_transformer:METHOD",
 }

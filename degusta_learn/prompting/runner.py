@@ -313,7 +313,7 @@ class ZeroShotRun:
         from degusta_learn.render.lifting import Renderer
 
         self.cfg, self.ds = cfg, ds
-        self.kind = answer_kind(cfg.method)
+        self.kind = answer_kind(self.answer_method)
         self.grid = Grid(cfg.grid.rows, cfg.grid.cols)
         self.renderer = Renderer.for_dataset(ds, size=cfg.render_size)
         self.out = Path(cfg.out)
@@ -332,7 +332,15 @@ class ZeroShotRun:
         self.schema = answer_schema(self.kind, ds.catalog, self.grid) if cfg.backend.structured_output else None
         self.schema_tokens = 0 if self.schema is None else math.ceil(len(json.dumps(self.schema)) / CHARS_PER_TOKEN)
         self.stop = threading.Event()
+        self.reused = [0, 0]  # input, output tokens of cached answers (paid in an earlier run)
+        self._reused_lock = threading.Lock()
         self.check_paths()
+
+    @property
+    def answer_method(self) -> str:
+        """The prompting method whose answer format the answers take (task.answers.answer_kind; hf's token budget):
+        the config's `method` (a method with a prompt of its own, such as text_llm, names the format it asks for)."""
+        return self.cfg.method
 
     def check_paths(self) -> None:
         """Refuse, before any request, a run whose outputs would destroy an input or a user's file: the
@@ -380,6 +388,11 @@ class ZeroShotRun:
         prompt = build_prompt(c.method, self.ds, ep, self.renderer, self.grid, c.image_format,
                               structured=c.backend.structured_output, style=style or c.prompt_style,
                               modality=self.modality)
+        return prompt, self.keys(prompt)
+
+    def keys(self, prompt: Prompt) -> list[str]:
+        """The cache keys of `prompt`'s n samples (+ the greedy answer's, for an anchored aggregation)."""
+        c = self.cfg
         d = c.decoding
         keys = sample_keys(prompt, c.backend, c.model, d, d.sampling_temperature, self.max_tokens, c.seed, d.n,
                            schema=self.schema)
@@ -389,7 +402,18 @@ class ZeroShotRun:
             # the images-only prompt of a model trained with text: before `modality`, the backend added the text to
             # this very prompt, so its key held answers to the trained prompt; this key is its own
             keys = [hashlib.sha256(f"{k}\0modality=images".encode()).hexdigest() for k in keys]
-        return prompt, keys
+        return keys
+
+    def lookup(self, keys: list[str]) -> dict[str, Completion]:
+        """The cached answers of `keys` (none without a cache), counted in the ledger (`samples_cached`) and in the
+        tokens reused from earlier runs (any thread)."""
+        hits = self.cache.get_many(keys) if self.cache else {}
+        self.ledger.count("samples_cached", len(hits))
+        with self._reused_lock:
+            for h in hits.values():
+                self.reused[0] += h.input_tokens or 0
+                self.reused[1] += h.output_tokens or 0
+        return hits
 
     # ------------------------------------------------------------------------- requests
 
@@ -398,15 +422,18 @@ class ZeroShotRun:
         self.stop.wait(seconds)
 
     def request(self, prompt: Prompt, k: int, seed: int | None, keys: list[str] | None = None,
-                episode: str | None = None, temperature: float | None = None) -> list[Completion]:
+                episode: str | None = None, temperature: float | None = None, max_tokens: int | None = None,
+                est_out: int | None = None) -> list[Completion]:
         """Ask for k samples, retrying transient errors; raises BudgetExceeded, _Stopped or BackendError.
+        `max_tokens` and `est_out` (output tokens a sample is assumed to take) default to the run's.
 
         The answers are committed to the cache under `keys` the moment they are received, before the
         ledger, parsing or aggregation touch them (the smallest window a kill can lose a paid answer in).
         """
         c = self.cfg
         est_in = self.input_tokens(prompt) * (k if self.per_sample else 1)
-        est_out = self.est_out * k
+        per_sample_out = self.est_out if est_out is None else est_out
+        est_out = per_sample_out * k
         est_usd = cost(self.price, est_in, est_out)
         for attempt in range(c.max_retries + 1):
             if self.stop.is_set():
@@ -415,13 +442,14 @@ class ZeroShotRun:
             try:
                 try:
                     got = _sanitize(self.backend.complete(prompt, k, c.decoding.sampling_temperature
-                                                          if temperature is None else temperature, self.max_tokens,
+                                                          if temperature is None else temperature,
+                                                          self.max_tokens if max_tokens is None else max_tokens,
                                                           seed))
                 except (BackendError, DegustaError, KeyboardInterrupt):
                     raise
                 except Exception as e:  # a client library's own exception, a local model's OOM: stop cleanly
                     raise BackendError(f"{c.backend.name}: {type(e).__name__}: {str(e)[:300]}", fatal=True) from None
-                got = self.received(got, keys, episode, est_in)
+                got = self.received(got, keys, episode, est_in, per_sample_out)
             except BackendError as e:
                 self.ledger.release(est_usd)
                 if e.fatal or not e.retryable or attempt == c.max_retries:
@@ -442,7 +470,7 @@ class ZeroShotRun:
         raise AssertionError("unreachable")
 
     def received(self, got: list[Completion], keys: list[str] | None, episode: str | None,
-                 est_in: int) -> list[Completion]:
+                 est_in: int, est_out: int | None = None) -> list[Completion]:
         """Keep a reply: its answers committed to the cache first, then the request in the ledger (paid, whatever
         it holds). A reply without an answer from a backend whose empty answers are the server's (`empty_is_fault`:
         no choices, a null message, empty or blank text) raises a retryable BackendError, retried as any server
@@ -455,7 +483,7 @@ class ZeroShotRun:
         outs = [x.output_tokens for x in got]
         unknown = fault and not got  # a server's reply without choices (nor usage): the input it was sent is billed
         self.ledger.record(None if unknown or None in ins else sum(ins), None if unknown or None in outs else sum(outs),
-                           len(answered), fallback=(est_in, self.est_out * len(got)))
+                           len(answered), fallback=(est_in, (self.est_out if est_out is None else est_out) * len(got)))
         if fault and (len(answered) < len(got) or not got):
             self.ledger.count("empty_answers", len(got) - len(answered) if got else 1)
         if fault and not answered:
@@ -481,15 +509,18 @@ class ZeroShotRun:
         return self.predict(ep, samples, reasons, cached=len(hits))
 
     def fetch(self, ep: Episode, prompt: Prompt, keys: list[str], samples: list, reasons: dict[int, str],
-              indices: list[int], temperature: float) -> None:
-        """Ask for the samples `indices` that `samples` lacks, at `temperature`, into `samples` (or `reasons`)."""
+              indices: list[int], temperature: float, max_tokens: int | None = None,
+              est_out: int | None = None) -> None:
+        """Ask for the samples `indices` that `samples` lacks, at `temperature`, into `samples` (or `reasons`);
+        `max_tokens` and `est_out` as `request` takes them."""
         c = self.cfg
         missing = [i for i in indices if samples[i] is None]
         while missing:
             seed = None if c.seed is None else c.seed + missing[0] - indices[0]  # the anchor: a greedy run's seed
             ask = missing[:1] if self.per_sample else missing  # per-sample APIs: each answer cached at once
             try:
-                got = self.request(prompt, len(ask), seed, [keys[i] for i in ask], ep.id, temperature)
+                got = self.request(prompt, len(ask), seed, [keys[i] for i in ask], ep.id, temperature,
+                                   max_tokens, est_out)
             except BudgetExceeded:
                 self.stop.set()  # at once, so no other worker starts a request
                 raise
@@ -564,7 +595,7 @@ class ZeroShotRun:
         _ = self.modality  # the model's record read once, before the model loads (the ledger names the modality)
         self.backend = make_backend(c.backend, c.model, c.decoding, self.grid, self.ds.catalog)
         if self.max_tokens == "auto":  # hf: what the dataset's answers take with the model's tokenizer
-            self.max_tokens = self.backend.token_budget(self.ds, c.method)["max_new_tokens"]
+            self.max_tokens = self.backend.token_budget(self.ds, self.answer_method)["max_new_tokens"]
         self.cache = ResponseCache(self.cache_path) if self.cache_path and self.cacheable else None
         self.ledger = Ledger(self.price, c.budget_usd)
         results: dict[str, Prediction] = {}
@@ -572,7 +603,7 @@ class ZeroShotRun:
         streak = [0]  # episodes in a row the server failed (reset by any answered episode)
         give_up = max(3, c.concurrency + 1)
         stopped: str | None = None
-        reused = [0, 0]  # tokens of cached answers (paid in an earlier run)
+        self.reused = reused = [0, 0]  # tokens of cached answers (paid in an earlier run; `lookup` counts them)
         start = time.time()
         todo = iter(episodes)
         bar = tqdm(total=len(episodes), desc=f"{c.method} {c.model.name}", unit="ep", disable=None)
@@ -585,11 +616,7 @@ class ZeroShotRun:
             if ep is None:
                 return False
             prompt, keys = self.prompt(ep)
-            hits = self.cache.get_many(keys) if self.cache else {}
-            self.ledger.count("samples_cached", len(hits))
-            for h in hits.values():
-                reused[0] += h.input_tokens or 0
-                reused[1] += h.output_tokens or 0
+            hits = self.lookup(keys)
             pending[pool.submit(self.episode, ep, prompt, keys, hits)] = ep
             return True
 
@@ -684,7 +711,12 @@ class ZeroShotRun:
             "cost_usd_per_episode": round(summary["cost_usd"] / max(1, len(results)), 6),
             "reused_from_cache": {"input_tokens": reused[0], "output_tokens": reused[1],
                                   "cost_usd": round(cost(self.price, *reused), 6)},
+            **self.ledger_extra(results),
         }))
+
+    def ledger_extra(self, results: dict[str, Prediction]) -> dict:
+        """Keys a method with a prompt of its own adds to ledger.json (text_llm: its two steps); none here."""
+        return {}
 
 
 def run_zeroshot(cfg: ZeroShotConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction] | None:
