@@ -95,4 +95,24 @@ async def read_body(request, limit: int, too_large) -> bytes:
     return bytes(data)
 
 
-__all__ = ["MAX_INT_DIGITS", "BodyTooLarge", "read_body", "shown", "strict_json"]
+def check_bindable(host: str, port: int) -> None:
+    """Refuse, before a server says it is serving, an address it cannot listen on (a port another server holds, an
+    address this machine does not have), in one line naming it and the remedy."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise DegustaError(f"--host {host}: not an address of this machine ({e.strerror})") from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            s.bind(address)
+        except OSError as e:
+            hint = "another server is using it: choose another with --port" if e.errno == errno.EADDRINUSE else "choose another --host"
+            raise DegustaError(f"cannot serve on {host}:{port}: {e.strerror} ({hint})") from None
+
+
+__all__ = ["MAX_INT_DIGITS", "BodyTooLarge", "check_bindable", "read_body", "shown", "strict_json"]

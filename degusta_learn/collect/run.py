@@ -15,6 +15,7 @@ from degusta_learn.collect.study import load_study_config, new_study_folder, ope
 from degusta_learn.errors import DegustaError
 from degusta_learn.files.locks import hold
 from degusta_learn.shipped import resolve_config
+from degusta_learn.webio import check_bindable
 
 KEY_VARIABLE = "DEGUSTA_COLLECT_KEY"
 
@@ -25,6 +26,7 @@ def collect(dataset: Path, config: Path | None, overrides: list[str], new: bool 
     key = os.environ.get(KEY_VARIABLE) or secrets.token_urlsafe(18)
     if len(key) < 12:
         raise DegustaError(f"{KEY_VARIABLE}: a key of {len(key)} characters is too easy to guess (use at least 12)")
+    check_bindable(host, port)  # before --new makes a folder or the server says it serves
     with hold(dataset, "study folder"):
         if new:
             new_study_folder(dataset)

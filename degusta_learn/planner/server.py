@@ -26,7 +26,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.planner.planner import BackendUnavailable, Planner
 from degusta_learn.planner.request import LIMITS, MAX_REQUEST_BYTES, too_large
 from degusta_learn.planner.schema import ERROR_SCHEMA, PLAN_SCHEMA, REQUEST_SCHEMA
-from degusta_learn.webio import BodyTooLarge, read_body
+from degusta_learn.webio import BodyTooLarge, check_bindable, read_body
 
 LIMIT_CONCURRENCY = 64
 """Open connections the server accepts at once (more get 503): bounds the bodies held in memory."""
@@ -104,6 +104,7 @@ def serve(planner: Planner, host: str = "127.0.0.1", port: int = 8000, log_line=
         raise DegustaError(f"degusta serve needs FastAPI and uvicorn ({e.name} is not installed): "
                            "pip install 'degusta_learn[serve]'") from None
 
+    check_bindable(host, port)
     if host not in ("127.0.0.1", "localhost", "::1"):
         log_line(f"note: serving on {host}: the planner has no authentication, so anyone who reaches this address "
                  "can ask it for plans")
