@@ -69,9 +69,11 @@ class Result:
 
 
 def cmd_data_generate(args) -> str:
+    from degusta_learn.config.yaml_io import apply_overrides
     from degusta_learn.synth import generate_dataset
 
-    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite, plausible=args.plausible)
+    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite, plausible=args.plausible,
+                           options=apply_overrides({}, args.set))
     return f"wrote the {args.name} dataset (SYNTHETIC{', plausible tables' if args.plausible else ''}) to {out}"
 
 
@@ -331,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     data = verbs.add_parser("data", help="generate, validate and cut datasets").add_subparsers(dest="data_verb", required=True)
     p = data.add_parser("generate", help="write an embedded synthetic dataset")
-    p.add_argument("name", choices=["naturalistic", "simulated"])
+    p.add_argument("name", choices=["naturalistic", "simulated", "relational"])
     p.add_argument("--out", required=True, type=_out_arg)
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--overwrite", action="store_true",
@@ -339,6 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plausible", action="store_true",
                    help="naturalistic only: every table keeps the plausibility rules (bounded duplicates per type, "
                         "a utensil per plate; docs/data.md); off: the default generator's files, byte for byte")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="relational only: a generator option (participants, noise, multi; docs/generators.md)")
     p.set_defaults(func=cmd_data_generate)
     p = data.add_parser("validate", help="check a dataset folder; exit 0 or name the file/line/field")
     p.add_argument("dir", type=_in_arg)

@@ -1,8 +1,9 @@
-"""SYNTHETIC datasets: the `naturalistic` and `simulated` generators, latent styles and the oracle.
+"""SYNTHETIC datasets: the `naturalistic`, `simulated` and `relational` generators, latent styles and the oracle.
 
 Usage:
     degusta data generate naturalistic --out data/naturalistic
     degusta data generate simulated --out data/simulated
+    degusta data generate relational --out data/relational
 
     from degusta_learn.synth import naturalistic, simulated, generate_dataset
     ds = naturalistic(seed=0)          # 199 participants x 5 arrangements, with ratings (in memory)
@@ -12,16 +13,23 @@ latent style is), templates.py (how styles are drawn), realize.py (style -> arra
 ratings.py (jitter-study ratings), simulated.py (the paper's 72 experiments), oracle.py (the oracle: each
 participant's own latent style), plausible.py (the rules a plausible table keeps; `--plausible`), posterior.py with
 posterior_model.py and posterior_prior.py (the achievable floor: the posterior predictive under the generator).
+The second family, `relational` (placement rules, not slots; docs/generators.md): relational.py (the generator and
+its options), relational_style.py, relational_habits.py (the draws), relational_realize.py (style -> arrangements)
+and relational_oracle.py.
 """
 
 from degusta_learn.synth.generate import GENERATORS, generate_dataset
 from degusta_learn.synth.naturalistic import naturalistic, naturalistic_with_styles
 from degusta_learn.synth.realize import expected_arrangement, sample_arrangement
+from degusta_learn.synth.relational import RelationalOptions, relational_with_styles
+from degusta_learn.synth.relational_realize import expected_relational, sample_relational
+from degusta_learn.synth.relational_style import RelationalStyle, read_relational_styles, write_relational_styles
 from degusta_learn.synth.simulated import simulated, simulated_episodes, simulated_with_styles
 from degusta_learn.synth.style import STYLES_FILE, Noise, Setting, Slot, Style, read_styles, write_styles
 
 __all__ = [
-    "GENERATORS", "STYLES_FILE", "Noise", "Setting", "Slot", "Style", "expected_arrangement", "generate_dataset",
-    "naturalistic", "naturalistic_with_styles", "read_styles", "sample_arrangement", "simulated",
-    "simulated_episodes", "simulated_with_styles", "write_styles",
+    "GENERATORS", "STYLES_FILE", "Noise", "RelationalOptions", "RelationalStyle", "Setting", "Slot", "Style",
+    "expected_arrangement", "expected_relational", "generate_dataset", "naturalistic", "naturalistic_with_styles",
+    "read_relational_styles", "read_styles", "relational_with_styles", "sample_arrangement", "sample_relational",
+    "simulated", "simulated_episodes", "simulated_with_styles", "write_relational_styles", "write_styles",
 ]
