@@ -89,15 +89,24 @@ def predict(config: str, data: Path, out: Path, extra: tuple = ()) -> Path:
                                 f"seed={SPLIT_SEED}", *extra], log=_quiet)
 
 
-def train(config: str, data: Path, run_dir: Path, name: str) -> Path:
-    """`degusta train --config CONFIG --set dataset=DATA` into run_dir/name; a finished run (best.ckpt) is reused."""
+def train(config: str, data: Path, run_dir: Path, name: str, seed: int) -> Path:
+    """`degusta train --config CONFIG --set dataset=DATA --set trainer.seed=SEED` into run_dir/name; a finished run
+    (best.ckpt) is reused."""
     if not (run_dir / name / "best.ckpt").is_file():
         run_train(shipped_config(config), [f"dataset={data}", f"seed={SPLIT_SEED}", f"trainer.run_dir={run_dir}",
-                           f"trainer.run_name={name}", "trainer.progress_bar=false"], log=_quiet)
+                           f"trainer.run_name={name}", "trainer.progress_bar=false", f"trainer.seed={seed}"],
+                  log=_quiet)
     return run_dir / name
 
 
-def run_methods(name: str, data: Path, out: Path, trained: bool) -> list[Path]:
+def relabel(path: Path, method: str) -> Path:
+    """Name every prediction of `path` `method` (one row per training seed in the tables)."""
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    path.write_text("".join(json.dumps({**r, "method": method}) + "\n" for r in rows))
+    return path
+
+
+def run_methods(name: str, data: Path, out: Path, trained: bool, seeds: tuple[int, ...] = (0,)) -> list[Path]:
     """Every method's predictions file on one generator's data (timed on stderr)."""
     pred_dir = out / "predictions" / name
     pred_dir.mkdir(parents=True, exist_ok=True)
@@ -107,11 +116,13 @@ def run_methods(name: str, data: Path, out: Path, trained: bool) -> list[Path]:
         files.append(predict(config, data, pred_dir / f"{method}.jsonl"))
         print(f"  {name} {method}: {time.perf_counter() - start:.1f} s", file=sys.stderr)
     if trained:
-        for method, (train_config, predict_config) in TRAINED.items():
+        for (method, (train_config, predict_config)), seed in itertools.product(TRAINED.items(), seeds):
             start = time.perf_counter()
-            run = train(train_config, data, out / "runs", f"{train_config}_{name}")
-            files.append(predict(predict_config, data, pred_dir / f"{method}.jsonl", (f"checkpoint={run}",)))
-            print(f"  {name} {method} (trained): {time.perf_counter() - start:.1f} s", file=sys.stderr)
+            run = train(train_config, data, out / "runs", f"{train_config}_{name}_s{seed}", seed)
+            label = f"{method}_s{seed}" if len(seeds) > 1 else method
+            files.append(relabel(predict(predict_config, data, pred_dir / f"{label}.jsonl", (f"checkpoint={run}",)),
+                                 label))
+            print(f"  {name} {label} (trained): {time.perf_counter() - start:.1f} s", file=sys.stderr)
     return files
 
 
@@ -219,13 +230,14 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=Path, required=True, help="folder for the datasets, predictions and trained runs")
     ap.add_argument("--seed", type=int, default=0, help="data seed of both generators")
     ap.add_argument("--trained", action="store_true", help="also train and score learned and set_transformer")
+    ap.add_argument("--train-seeds", type=int, nargs="+", default=[0], help="training seeds (--trained): one row each")
     ap.add_argument("--n-bootstrap", type=int, default=2000)
     args = ap.parse_args(argv)
     start = time.perf_counter()
     summaries, rows = {}, {}
     for name in GENERATORS:
         data = dataset(args.out, name, args.seed)
-        rows[name] = score(data, run_methods(name, data, args.out, args.trained))
+        rows[name] = score(data, run_methods(name, data, args.out, args.trained, tuple(args.train_seeds)))
         summaries[name] = summarize(rows[name], n_bootstrap=args.n_bootstrap, seed=0, cluster="participant")
     n_people = len({r.participant for r in rows[GENERATORS[0]]})
     n_eps = len({r.episode for r in rows[GENERATORS[0]]})
