@@ -32,12 +32,12 @@ and field.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.files.jsonio import atomic_write_json, read_json
+from degusta_learn.synth.style import check_fields
 
 SIDES = {"near": 0.0, "left": 90.0, "far": 180.0, "right": 270.0}
 """A seat's edge -> the diner's facing (degrees clockwise; 0: sits at the bottom edge, utensils point north)."""
@@ -151,39 +151,14 @@ def write_relational_styles(path: str | Path, styles: list[RelationalStyle]) -> 
 # Bounds a style's numbers keep (the sampler draws well inside them): beyond them the layout leaves the table.
 _RANGES = {"along": (-1.0, 1.0), "inset": (-0.2, 0.5), "direction": (-3600.0, 3600.0), "gap": (-0.3, 0.5),
            "shift": (-0.3, 0.3), "rotation": (-3600.0, 3600.0), "p_include": (0.0, 1.0), "strictness": (0.0, 100.0),
-           "loyalty": (0.0, 1.0), "rating_base": (0.0, 100.0), "rating_sensitivity": (0.0, 1000.0),
-           "noise.position": (0.0, 0.2), "noise.rotation": (0.0, 360.0), "noise.direction": (0.0, 180.0),
-           "noise.gap": (0.0, 0.2), "noise.seat": (0.0, 1.0), "noise.turn": (0.0, 180.0), "noise.order": (0.0, 1.0)}
+           "loyalty": (0.0, 1.0), "rating_base": (0.0, 100.0), "rating_sensitivity": (0.0, 1000.0)}
+_NOISE_RANGES = {"position": (0.0, 0.2), "rotation": (0.0, 360.0), "direction": (0.0, 180.0), "gap": (0.0, 0.2),
+                 "seat": (0.0, 1.0), "turn": (0.0, 180.0), "order": (0.0, 1.0)}
 
 
-def _check_fields(cls, d, where: str) -> None:
-    """`d` against dataclass `cls`: an object, no unknown or missing keys, every value of its field's kind."""
-    if not isinstance(d, dict):
-        raise ValueError(f"field {where.rstrip('.')!r}: expected an object, got {type(d).__name__}"
-                         if where else f"expected an object, got {type(d).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - set(fields))
-    if unknown:
-        raise ValueError(f"unknown field {where}{unknown[0]!r} (known: {', '.join(fields)})")
-    for name, f in fields.items():
-        key = f"{where}{name}"
-        if name not in d:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise ValueError(f"missing field {key!r}")
-            continue
-        value, kind = d[name], str(f.type)
-        if kind == "float":
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"field {key!r}: expected a finite number, got {value!r}")
-            lo, hi = _RANGES.get(key.split("].")[-1] if "]." in key else key, (-math.inf, math.inf))
-            if not lo <= value <= hi:
-                raise ValueError(f"field {key!r}: {value!r} is outside [{lo:g}, {hi:g}]")
-        elif kind == "int" and (isinstance(value, bool) or not isinstance(value, int) or value < -1):
-            raise ValueError(f"field {key!r}: expected an integer >= -1, got {value!r}")
-        elif kind == "str" and not (isinstance(value, str) and value.strip()):
-            raise ValueError(f"field {key!r}: expected a non-empty string, got {value!r}")
-        elif kind == "list[str]" and not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
-            raise ValueError(f"field {key!r}: expected a list of strings")
+def _check_fields(cls, d, where: str, ranges: dict = _RANGES) -> None:
+    """`d` against dataclass `cls` (style.check_fields with this generator's bounds; a rule's `ref` may be -1)."""
+    check_fields(cls, d, where, ranges, min_int=-1)
 
 
 def check_relational_style(d) -> None:
@@ -212,7 +187,7 @@ def check_relational_style(d) -> None:
             raise ValueError(f"field '{where}.seat': {r['seat']} is not a seat index (the style has "
                              f"{len(d['seats'])})")
     if "noise" in d:
-        _check_fields(RelNoise, d["noise"], "noise.")
+        _check_fields(RelNoise, d["noise"], "noise.", _NOISE_RANGES)
 
 
 def read_relational_styles(path: str | Path) -> dict[str, RelationalStyle]:

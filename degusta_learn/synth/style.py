@@ -137,8 +137,10 @@ def _number(value, field: str, ranges: dict) -> None:
         raise ValueError(f"field {field!r}: {value!r} is outside [{lo:g}, {hi:g}]")
 
 
-def _fields(cls, d, where: str, ranges: dict = _RANGES) -> dict:
-    """`d` checked against dataclass `cls`: an object, no unknown or missing keys, numbers finite and in range."""
+def check_fields(cls, d, where: str, ranges: dict = _RANGES, min_int: int = 0) -> dict:
+    """`d` checked against dataclass `cls`: an object, no unknown or missing keys, numbers finite and in `ranges`
+    (by field name), integers >= `min_int` (ValueError naming the field, `where` its prefix). Both generators'
+    latent styles are checked with it."""
     if not isinstance(d, dict):
         what = f"field {where.rstrip('.')!r}" if where else "the style"
         raise ValueError(f"{what}: expected an object, got {type(d).__name__}")
@@ -154,8 +156,8 @@ def _fields(cls, d, where: str, ranges: dict = _RANGES) -> dict:
         value, kind = d[name], str(f.type)
         if kind == "float":
             _number(value, f"{where}{name}", ranges)
-        elif kind == "int" and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
-            raise ValueError(f"field {where}{name!r}: expected an integer >= 0, got {value!r}")
+        elif kind == "int" and (isinstance(value, bool) or not isinstance(value, int) or value < min_int):
+            raise ValueError(f"field {where}{name!r}: expected an integer >= {min_int}, got {value!r}")
         elif kind == "str" and not (isinstance(value, str) and value.strip()):
             raise ValueError(f"field {where}{name!r}: expected a non-empty string, got {value!r}")
         elif kind == "list[str]" and not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
@@ -164,19 +166,19 @@ def _fields(cls, d, where: str, ranges: dict = _RANGES) -> dict:
 
 
 def _check_style(d) -> None:
-    _fields(Style, d, "")
+    check_fields(Style, d, "")
     for key in ("settings", "slots"):
         if not isinstance(d[key], list) or not d[key]:
             raise ValueError(f"field {key!r}: expected a non-empty list")
     for i, s in enumerate(d["settings"]):
-        _fields(Setting, s, f"settings[{i}].")
+        check_fields(Setting, s, f"settings[{i}].")
     for i, s in enumerate(d["slots"]):
-        _fields(Slot, s, f"slots[{i}].")
+        check_fields(Slot, s, f"slots[{i}].")
         if s.get("setting", 0) >= len(d["settings"]):
             raise ValueError(f"field 'slots[{i}].setting': {s['setting']} is not a setting index "
                              f"(the style has {len(d['settings'])})")
     if "noise" in d:
-        _fields(Noise, d["noise"], "noise.", {**_RANGES, **_NOISE_RANGES})
+        check_fields(Noise, d["noise"], "noise.", {**_RANGES, **_NOISE_RANGES})
 
 
 def read_styles(path: str | Path) -> dict[str, Style]:
