@@ -1,6 +1,6 @@
 """The context tables written in the answer format after their images (`modality: both`, spelled
-`PromptOptions(context_answers=True)` in records written before `modality`, and `backend.context_answers` by the hf
-backend itself). The modality controls themselves: tests/test_modality.py."""
+`context_answers: true` in records written before `modality`; a config's old `context_answers` keys are refused
+with one line naming `modality`). The modality controls themselves: tests/test_modality.py."""
 
 from __future__ import annotations
 
@@ -124,26 +124,30 @@ def test_the_old_config_key_names_the_new_one(small_dataset_dir):
         load_config(FinetuneConfig, data={"dataset": str(small_dataset_dir), "data": {"context_answers": True}})
 
 
-def test_the_hf_backend_writes_the_contexts_out_when_asked_whatever_the_training(setting, monkeypatch):
-    """`backend.context_answers`: null keeps how the model was trained (a plain model: the paper's prompt);
-    true / false overrides it (a zero-shot row prompted as a contexts-as-text fine-tune was); it keys the cache."""
+def test_the_hf_backend_shows_the_contexts_as_the_prompt_or_else_the_training_says(setting, monkeypatch):
+    """A prompt whose modality the runner chose keeps it; one without is shown as the model's record says (a plain
+    model: images, the paper's prompt). The backend has no modality key of its own: `backend.context_answers` is
+    refused with one line naming the top-level `modality`."""
     from finetune_support import tiny_dir
 
     from degusta_learn.prompting.backends.base import backend_config
     from degusta_learn.prompting.backends.hf import HFBackend
+    from degusta_learn.task.prompt import with_modality
     from degusta_learn.vlm import generate
-    from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
     ds, episode, renderer = setting
     prompt = build_prompt("mogma", ds, episode, renderer, Grid(8, 8))
     seen = []
     monkeypatch.setattr(generate, "generate_answers", lambda model, processor, p, **kw: seen.append(p) or [])
-    model = str(tiny_dir("idefics3"))
-    for value, lines in ((None, 0), (True, 2), (False, 0)):
-        HFBackend(model, device="cpu", context_answers=value).complete(prompt, 1, 0.0, 64)
+    backend = HFBackend(str(tiny_dir("idefics3")), device="cpu")
+    for shown, lines in ((prompt, 0), (with_modality(prompt, "both"), 2), (with_modality(prompt, "images"), 0)):
+        backend.complete(shown, 1, 0.0, 64)
         assert len(_answer_lines(seen[-1])) == lines
-    settings = (ModelSettings(name=model), DecodingSettings(constrained=False))
-    keys = [backend_config("hf", context_answers=v).answer_fields(*settings) for v in (None, True)]
-    assert keys[0]["context_answers"] is None and keys[1]["context_answers"] is True
-    with pytest.raises(DegustaError, match="backend.context_answers"):
-        backend_config("hf", context_answers="often")
+    backend.options = PromptOptions(modality="both")  # as a record of a model trained on both reads
+    backend.complete(prompt, 1, 0.0, 64)
+    assert len(_answer_lines(seen[-1])) == 2
+    backend.complete(with_modality(prompt, "images"), 1, 0.0, 64)  # the runner's choice stands
+    assert len(_answer_lines(seen[-1])) == 0
+    for value in (True, "often"):
+        with pytest.raises(DegustaError, match=r"'backend.context_answers' is now 'modality, at the top level"):
+            backend_config("hf", context_answers=value)

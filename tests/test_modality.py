@@ -143,7 +143,7 @@ def _zeroshot(tmp_path, ds_dir, **keys):
 
 def test_predict_spelling_is_modality(small_dataset_dir, tmp_path):
     assert _zeroshot(tmp_path, small_dataset_dir, modality="text").modality == "text"
-    with pytest.raises(DegustaError, match=r"'backend.context_answers' is now 'modality \(true was both"):
+    with pytest.raises(DegustaError, match=r"'backend.context_answers' is now 'modality, at the top level of a predict config \(the old context_answers: true was both"):
         _zeroshot(tmp_path, small_dataset_dir, backend={"name": "hf", "context_answers": True})
     with pytest.raises(DegustaError, match=r"'context_answers' is now 'modality"):
         _zeroshot(tmp_path, small_dataset_dir, context_answers=True)

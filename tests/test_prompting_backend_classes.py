@@ -171,7 +171,7 @@ def test_the_shipped_backends_capabilities():
 
 
 @pytest.mark.parametrize("backend, key, owner", [
-    ({"name": "openai", "context_answers": True}, "context_answers", "hf"),
+    ({"name": "openai", "device": "cpu"}, "device", "hf"),
     ({"name": "hf", "timeout": 3}, "timeout", "openai, anthropic, gemini"),
     ({"name": "replay", "path": "p", "base_url": "http://x"}, "base_url", "openai, anthropic, gemini"),
     ({"name": "anthropic", "detail": "low"}, "detail", "openai"),
@@ -269,7 +269,6 @@ def test_hf_cache_keys_follow_every_model_and_decoding_key():
                             (base[0], DecodingSettings(constrained=True, report_unconstrained=False))]:
         seen.add(sample_keys(prompt, cfg, model, decoding, 1.0, 100, 0, 1)[0])
     assert len(seen) == 7
-    assert sample_keys(prompt, backend_config("hf", context_answers=True), *base, 1.0, 100, 0, 1)[0] not in seen
 
 
 # ----------------------------------------------------------------------------- the runner asks the class

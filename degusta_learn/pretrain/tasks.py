@@ -20,7 +20,7 @@ prompted with the DegustaBot prompt is zero-shot on the task. The tasks:
   direction): many answers per rendered image, the skill the preference task needs to carry a context
   arrangement onto a new table.
 - ``transcribe``: the ``list`` prompt with each scene's arrangement also written in the answer format after its
-  placement-order line (the sentence `PromptOptions.context_answers` adds to a preference prompt), and the
+  placement-order line (the sentence `modality: both` adds to a preference prompt), and the
   ``list`` question in placement order about one of them: the answer is that scene's written list, copied.
   Reading a list from the prompt and writing it out again, item by item to its end, is what a preference
   prompt with the context tables written out asks of the decoder.
@@ -268,7 +268,7 @@ class PerceptionExamples:
         truths = [self._truth(scene.placements) for scene in scenes]  # (answer text, truth items) per scene
         written = {f"final_state_{j}.jpg": text for j, (text, _) in enumerate(truths, start=1)}
         parts = adapt_prompt(Prompt("perception", parts, context_answers=written),
-                             PromptOptions(context_answers=True)).parts
+                             PromptOptions(modality="both")).parts
         asked = int(rng.integers(k))
         parts.append(list_question(f"final_state_{asked + 1}.jpg", self.types))
         answer, truth = truths[asked]

@@ -70,14 +70,13 @@ from degusta_learn.scene import Dataset, Episode, Prediction
 from degusta_learn.task.aggregate import ANCHORED, combine, decoding_diagnostics
 from degusta_learn.task.answer_format import answer_schema
 from degusta_learn.task.answers import MAX_CHARS, AnswerParseError, answer_kind, is_repeat, read_answer
-from degusta_learn.task.prompt import IMAGE_FORMATS, Prompt, build_prompt
+from degusta_learn.task.prompt import IMAGE_FORMATS, MODALITY_RENAMED, Prompt, build_prompt
 from degusta_learn.vlm.settings import API_MAX_NEW_TOKENS, DecodingSettings, ModelSettings, check_api_settings
 
 LEDGER_MARK = "degusta zero-shot ledger"
 """The `kind` of every ledger.json the runner writes: only such a file (or one with the keys of ledgers written
 before the mark) is replaced by a later run."""
 _LEDGER_KEYS = {"method", "backend", "model", "n", "episodes", "episodes_done", "cost_usd"}
-MODALITY_RENAMED = "modality (true was both: images + text; false was images; null: as the model was trained)"
 
 
 def is_degusta_ledger(path: Path) -> bool:
@@ -149,9 +148,6 @@ class ZeroShotConfig(PredictConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if getattr(self.backend, "context_answers", None) is not None:  # hf's old key: one spelling, `modality`
-            raise DegustaError(f"'backend.context_answers' is now '{MODALITY_RENAMED}' (one spelling for fine-tuning "
-                               "and predicting: docs/configs.md)")
         cls = backend_class(self.backend.name)
         if not cls.local_decoding:  # a service or a recorded file answers: the local model's keys are refused
             check_api_settings(self.model, self.decoding, self.backend.name)

@@ -59,6 +59,8 @@ JPEG_QUALITY = 90
 PROMPT_STYLES = ("clarified", "paper")
 """The prompt texts `build_prompt` writes (`prompt_style` of a predict config): see the module docstring."""
 MODALITIES = ("images", "text", "both")
+MODALITY_RENAMED = ("modality, at the top level of a predict config (the old context_answers: true was both, "
+                    "images + text; false was images; null: as the model was trained)")
 """How a prompt shows the context tables (`modality` of predict configs, `data.modality` of fine-tuning): as images,
 written as text only, or both (module docstring)."""
 CONTEXT_ANSWER_LINE = "The objects in {name}, written as an answer: {answer}"

@@ -3,7 +3,7 @@
 Which model is the config's `model:` section (`vlm.settings.ModelSettings`: `model.name`, `model.adapter`,
 `model.dtype`, `model.image_size`), how it decodes its `decoding:` section (`constrained`, `on_repeat`,
 `max_new_tokens`, `report_unconstrained`, ...), the same keys fine-tuning's validation reads; `backend:` keeps how
-the model runs here (`device`, `context_answers`). Loads the model (`vlm.load.load_vlm`: a folder, a shipped model
+the model runs here (`device`). Loads the model (`vlm.load.load_vlm`: a folder, a shipped model
 such as `tiny_vlm_base`, or a hub id, downloaded into the Hugging Face cache when missing unless
 `HF_HUB_OFFLINE=1`: vlm/hub.py), optionally with a peft adapter (`model.adapter`, folded into the weights for
 speed), and answers with `vlm.generate.generate_answers`, constrained to the answer grammar unless
@@ -27,14 +27,15 @@ Usage (configs/predict_hf_tiny_finetuned.yaml):
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from degusta_learn.errors import DegustaError
-from degusta_learn.prompting.backends.base import Backend, BackendConfig
+from degusta_learn.prompting.backends.base import RENAMED_KEYS, Backend, BackendConfig
+from degusta_learn.task.prompt import MODALITY_RENAMED
 from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 DECODING_VERSION = 5
@@ -54,12 +55,8 @@ class HFConfig(BackendConfig):
     name: str = "hf"
     device: str = "auto"
     """cpu, cuda, auto."""
-    context_answers: bool | None = None
-    """Each context table also written out in the answer format after its image (`vlm.prompt_options`; not the
-    paper's prompt). null: as the model was trained (its degusta_finetune.json or degusta_base.json; off for
-    any other model); true / false: so, whatever the training (e.g. a zero-shot row prompted as a fine-tune was)."""
 
-    answer_keys = ("context_answers",)
+    RENAMED: ClassVar[dict[str, str]] = {**RENAMED_KEYS, "context_answers": MODALITY_RENAMED}
 
     def answer_fields(self, model: ModelSettings, decoding: DecodingSettings) -> dict:
         """The base keys, the model and decoding keys this backend reads, and the decoding version: answers cached
@@ -98,7 +95,7 @@ class HFBackend(Backend):
 
     def __init__(self, model: str, adapter: str | None = None, constrained: bool = False, device: str = "auto",
                  dtype: str = "auto", image_size: int | None = None, grid=None, catalog=None,
-                 on_repeat: str = "skip", context_answers: bool | None = None, report_unconstrained: bool = True):
+                 on_repeat: str = "skip", report_unconstrained: bool = True):
         from degusta_learn.vlm.generate import chat_format
         from degusta_learn.vlm.hub import resolve_adapter, resolve_model
         from degusta_learn.vlm.inputs import check_grid_resolution, set_image_budget
@@ -126,11 +123,7 @@ class HFBackend(Backend):
         set_image_budget(self.processor, self.vlm.config, budget, key="model.image_size")
         if grid is not None:
             check_grid_resolution(self.processor, self.vlm.config, grid, key="model.image_size")
-        self.options = self.record.prompt if self.record else None
-        if context_answers is not None:
-            from degusta_learn.vlm.prompt_options import PromptOptions
-
-            self.options = dataclasses.replace(self.options or PromptOptions(), context_answers=context_answers)
+        self.options = self.record.prompt if self.record else None  # its modality: the prompt's, when chosen
         self.trained_method = self.record.method if isinstance(self.record, FinetuneRecord) else None
         self.constrained, self.grid, self.catalog = constrained, grid, catalog
         self.on_repeat, self.report_unconstrained = on_repeat, report_unconstrained
@@ -145,8 +138,7 @@ class HFBackend(Backend):
         decoding = decoding.resolved(local=True)
         return cls(model.name, adapter=model.adapter, constrained=decoding.constrained, device=cfg.device,
                    dtype=model.dtype, image_size=model.image_size, grid=grid, catalog=catalog,
-                   on_repeat=decoding.on_repeat, context_answers=cfg.context_answers,
-                   report_unconstrained=decoding.report_unconstrained)
+                   on_repeat=decoding.on_repeat, report_unconstrained=decoding.report_unconstrained)
 
     def grammar(self, method: str):
         from degusta_learn.task.answers import answer_kind
