@@ -4,7 +4,9 @@ The folder holds what `save_pretrained` writes for the model (config.json, model
 generation_config.json) and the processor (tokenizer, image processor, chat template), plus
 `degusta_base.json` (architecture, image budget, training facts, the validation curve), the resolved
 training config (`pretrain_config.yaml`) and `README.md`, the model card. `bench_perception.py`
-adds `perception.json` (its held-out scores) and re-renders the card with `write_card`.
+adds `perception.json` (its held-out scores) and `bench_base_route.py --record` adds `selection.json` (how the
+build was chosen, its fine-tuned route on the validation participants and the one test look); `write_card`
+re-renders the card from them.
 
 The folder is staged beside its destination and swapped in whole (`files.folders.write_folder`): a reader never sees
 half of it, and a file of the user's in it is kept.
@@ -26,6 +28,7 @@ from degusta_learn.training import validation_curve
 from degusta_learn.vlm.record import BASE_FILE as BASE_META  # the record's file name, defined once
 
 PERCEPTION = "perception.json"
+SELECTION = "selection.json"  # how the build was chosen and its route's rows (benchmarks/bench_base_route.py)
 PRETRAIN_CONFIG = "pretrain_config.yaml"  # the run's resolved config, in the folder
 RECIPE = "pretrain_tiny_vlm_cpu.yaml"  # the shipped pretraining config
 COMMAND = f"degusta train --config configs/{RECIPE}"
@@ -188,6 +191,41 @@ def _curriculum(t: dict) -> str:
     return f"; its first {t['curriculum_steps']} decoder steps asked one-scene questions only ({asked})"
 
 
+def _route_table(section: dict) -> list[str]:
+    """A selection.json section (bench_base_route.py) as a markdown table and its paired differences."""
+    lines = [f"{section['episodes']} episodes of {section['participants']} participants, context "
+             f"{section.get('context', '?')}, split seed {section.get('split_seed', '?')}, measured "
+             f"{section.get('date', '?')}; a row's per-episode score is the mean over its training seeds, 95% "
+             "intervals resample participants:", "",
+             "| row | seeds | set RMSD | object accuracy (paper) | Kabsch RMSD (paper) | count error |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for r in section["rows"]:
+        lines.append(f"| {r['name']} | {r['files']} | " + " | ".join(
+            f"{_fmt(r[k][0])} [{_fmt(r[k][1])}, {_fmt(r[k][2])}]" for k in ("set_rmsd", "object_accuracy"))
+            + f" | {_fmt(r['rmsd'][0])} | {_fmt(r['count_error'][0])} |")
+    lines.append("")
+    for p in section.get("pairs", []):
+        diffs = [f"{k.replace('_', ' ')} {d['diff']:+.4f} [{d['lo']:+.4f}, {d['hi']:+.4f}], "
+                 + ("p < 0.001" if d["p_value"] < 0.001 else f"p {d['p_value']:.3f}")
+                 for k, d in ((k, p[k]) for k in ("set_rmsd", "object_accuracy")) if d["p_value"] is not None]
+        lines += [f"- {p['a']} minus {p['b']}: " + "; ".join(diffs)]
+    return lines + ([""] if section.get("pairs") else [])
+
+
+def _selection_lines(sel: dict | None) -> list[str]:
+    """The card's "How this build was chosen" section from selection.json (nothing when the folder has none)."""
+    if not sel:
+        return []
+    lines = ["## How this build was chosen", "", sel.get("protocol", "(no protocol recorded)"), ""]
+    for key, title in (("validation", "Its route on the validation participants"),
+                       ("test", "The test split, looked at once after every choice")):
+        if key in sel:
+            lines += [f"### {title}", "", *_route_table(sel[key])]
+    for old in sel.get("withdrawn_test_looks", []):
+        lines += [f"An earlier test look ({old.get('date', '?')}) was withdrawn: {old.get('withdrawn_because')}.", ""]
+    return lines
+
+
 def _load_lines(name: str, path: Path) -> list[str]:
     """The card's loading snippet: the shipped base by its name (degusta) and by its folder inside the installed
     package (transformers); another base by the folder it was exported to."""
@@ -215,6 +253,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
     name, path = name or folder.name, Path(path or folder)
     meta = read_json(folder / BASE_META)
     bench = read_json(folder / PERCEPTION) if (folder / PERCEPTION).is_file() else None
+    selection = read_json(folder / SELECTION) if (folder / SELECTION).is_file() else None
     a, t = meta["architecture"], meta["training"]
     curve = meta.get("validation_curve") or []
     last = curve[-1] if curve else {}
@@ -278,6 +317,7 @@ def write_card(folder: Path, name: str | None = None, path: Path | None = None) 
                                             + [f"{_fmt(row.get('val/tower_type'))} / {_fmt(row.get('val/tower_id'))}"])
                             + " |")
         lines.append("")
+    lines += _selection_lines(selection)
     lines += [
         "## Limits", "",
         "- It knows the 125 objects and 5 tables it was trained on (the embedded default catalog); another "
