@@ -121,6 +121,31 @@ def test_replay_runs_both_steps_and_counts_a_missing_summary_and_a_bad_answer(tm
     assert not (tmp_path / "run" / "responses_cache.sqlite").exists()  # replay: the file is the cache
 
 
+def test_a_text_llm_predictions_file_replays_both_steps_as_recorded(tmp_path, ds, data):
+    """A text_llm predictions.jsonl is itself a replay file: its summaries (diagnostics.summary) answer step 1 and
+    its responses step 2, so the replayed run gives the same predictions and summaries; a summary recorded cut to
+    SUMMARY_MAX_CHARS is given to step 2 unchanged (the cut is idempotent)."""
+    from degusta_learn.prompting.text_llm import SUMMARY_MAX_CHARS
+
+    episodes = make_episodes(ds, 2, "all")
+    long = "x" * (SUMMARY_MAX_CHARS + 50)
+    rows = []
+    for j, ep in enumerate(episodes):
+        rows.append({"episode": ep.id + SUMMARY_SUFFIX, "sample": 0, "text": long if j == 0 else f"{SUMMARY} ({j})"})
+        rows += [{"episode": ep.id, "sample": i, "text": answer(ds, ep)} for i in range(2)]
+    path = tmp_path / "answers.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    first = read_predictions(run_predict(None, replay_config(tmp_path, data, path)), ds.catalog)
+    assert first[0].diagnostics["summary"] != long and len(first[0].diagnostics["summary"]) < len(long) + 80
+    recorded = tmp_path / "first.jsonl"
+    recorded.write_text((tmp_path / "run" / "predictions.jsonl").read_text())
+    again = read_predictions(run_predict(None, replay_config(tmp_path, data, recorded)), ds.catalog)
+    assert not any(p.failed for p in again)
+    for a, b in zip(first, again):
+        assert b.diagnostics["summary"] == a.diagnostics["summary"]
+        assert [(q.object, q.x, q.y) for q in b.placements] == [(q.object, q.x, q.y) for q in a.placements]
+
+
 def test_context_zero_skips_the_summary(tmp_path, ds, data):
     episodes = make_episodes(ds, 0, "all")
     path = tmp_path / "answers.jsonl"

@@ -4,7 +4,8 @@
 - a JSONL file with one sampled answer a line: `{"episode": "p001/t2/k4", "sample": 0, "text": "[...]"}`
   (`"sample": "greedy"`: the greedy answer `aggregation: greedy_votes_pooled` asks for), or
 - a predictions.jsonl written by a zero-shot run (its `diagnostics.responses` hold the raw answers,
-  `diagnostics.greedy_response` the greedy one).
+  `diagnostics.greedy_response` the greedy one; a text_llm run's `diagnostics.summary`, the preference summary its
+  second step was given, is its first step's answer, found under the episode id plus `#summary`).
 
 Answers are looked up by the prompt's episode id and sample index (at temperature 0, the greedy answer where one
 is recorded); a missing answer counts as a failed sample. What it is: local (costs nothing), not cached (the file is the cache), every recorded answer
@@ -23,6 +24,7 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.files.jsonio import read_jsonl
 from degusta_learn.prompting.backends.base import Backend, BackendConfig, Completion
 from degusta_learn.task.prompt import Prompt
+from degusta_learn.task.text_llm_prompt import SUMMARY_SUFFIX
 from degusta_learn.vlm.settings import DecodingSettings, ModelSettings
 
 
@@ -68,6 +70,8 @@ def read_replay(path: str | Path) -> dict[str, dict[int | str, str]]:
                     answers[i] = text
             if isinstance(diagnostics.get("greedy_response"), str):
                 answers[GREEDY] = diagnostics["greedy_response"]
+            if isinstance(diagnostics.get("summary"), str):  # text_llm's step 1, recorded as step 2 was given it
+                out.setdefault(row["episode"] + SUMMARY_SUFFIX, {})[0] = diagnostics["summary"]
     return out
 
 
