@@ -48,6 +48,36 @@ def test_an_api_method_plans_with_its_cost_cache_and_ledger(tmp_path, dataset_di
         server.close()
 
 
+def test_text_llm_plans_like_the_prompting_methods(tmp_path, dataset_dir, monkeypatch):
+    """text_llm's two requests an episode (summary, placements) go through the same kept backend, and the plan says
+    what they cost; a server that answers nothing is 'unavailable', as for the four prompting methods."""
+    from degusta_learn.planner.planner import BackendUnavailable
+
+    monkeypatch.setenv("OPENAI_API_KEY", FAKE_KEY)
+    server = FakeOpenAI()
+    built = []
+    make = runner.make_backend
+    monkeypatch.setattr(runner, "make_backend", lambda *a, **k: built.append(a) or make(*a, **k))
+    try:
+        sets = ["method=text_llm", f"dataset={dataset_dir}", "backend.name=openai", f"backend.base_url={server.url}",
+                "backend.timeout=10", "model.name=fake-model", "decoding.n=1", "decoding.temperature=0",
+                "prices={fake-model: [1000.0, 2000.0]}", "max_retries=1", "backoff=0.01"]
+        planner = Planner.from_config(None, sets, workdir=tmp_path / "plans")
+        plan = planner.plan({"participant": "p000", "trials": [0, 1], "table": 2})
+        assert len(server.requests) == 2  # the summary, then the placements
+        assert plan.diagnostics["cost_usd"] > 0
+        planner.plan({"participant": "p001", "trials": [0, 1], "table": 2})
+        # its summary is asked; the fake server summarises everyone alike, so the placement prompt (that summary,
+        # the same table) is the first plan's, answered from the cache
+        assert len(server.requests) == 3 and len(built) == 1, "the backend must be built once for all plans"
+        for _ in range(4):
+            server.error(500, "overloaded")
+        with pytest.raises(BackendUnavailable, match="^zero-shot run incomplete"):
+            planner.plan({"participant": "p002", "trials": [0, 1], "table": 2})
+    finally:
+        server.close()
+
+
 @pytest.mark.slow
 def test_the_hf_backend_loads_its_model_once(tmp_path, dataset_dir, monkeypatch):
     """The shipped tiny base VLM, zero-shot (offline): 6-30 s on one CPU core (by load), most of it the first load."""

@@ -37,7 +37,7 @@ from degusta_learn.config import apply_overrides, from_dict, read_yaml
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import MethodSpec, get_method
 from degusta_learn.methods.predict import run_choices
-from degusta_learn.names import PROMPT_METHODS
+from degusta_learn.names import MODEL_PROMPTED_METHODS
 from degusta_learn.planner.episode import Prepared, prepare
 from degusta_learn.planner.plan import Plan, PlanTable
 from degusta_learn.planner.request import PlanRequest, loads_request
@@ -165,7 +165,7 @@ class Planner:
     def _predict(self, prep: Prepared) -> tuple[Prediction, float | None]:
         if self.method == "learned":
             return self._learned(prep), None
-        if self.method in PROMPT_METHODS:
+        if self.method in MODEL_PROMPTED_METHODS:  # a model asked: its backend kept between plans, its cost read
             return self._zeroshot(prep)
         predictions = self.spec.run(self.cfg, prep.ds, [prep.episode])
         return self._one(predictions), None
