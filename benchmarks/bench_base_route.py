@@ -29,11 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from degusta_learn.evaluate.scoring import check_records, score_predictions
+from degusta_learn.errors import DegustaError
+from degusta_learn.evaluate.scoring import score_file
 from degusta_learn.files.atomic import atomic_write_text
 from degusta_learn.metrics import bootstrap_ci, paired_bootstrap
 from degusta_learn.pretrain.export import SELECTION
-from degusta_learn.scene import load_dataset, make_episodes, read_predictions
+from degusta_learn.scene import load_dataset, make_episodes
 
 FIELDS = ("set_rmsd", "object_accuracy", "rmsd", "count_error", "order_tau")
 """The columns of a row: set RMSD (the ranking), object accuracy and Kabsch RMSD (the paper's), count error, order."""
@@ -57,13 +58,11 @@ def seed_means(ds, episodes: dict, files: list[Path]) -> dict[str, dict[str, flo
     """{episode: {field: mean over the files}} for one row (nan-mean; nan where no file scored the field)."""
     per_file = []
     for path in files:
-        preds = read_predictions(path, ds.catalog, episodes)
-        for note in check_records(path, preds, ds, episodes):
-            print(f"note: {note}", file=sys.stderr)
-        missing = set(episodes) - {p.episode for p in preds}
-        if missing:
-            raise SystemExit(f"{path}: {len(missing)} of the {len(episodes)} episodes have no prediction")
-        per_file.append({r.episode: r for r in score_predictions(ds, preds, episodes)})
+        try:
+            rows = score_file(ds, path, episodes, note=lambda text: print(f"note: {text}", file=sys.stderr))
+        except DegustaError as e:
+            raise SystemExit(str(e)) from None
+        per_file.append({r.episode: r for r in rows})
     out = {}
     for e in episodes:
         vals = {f: [float(getattr(rows[e], f)) for rows in per_file] for f in FIELDS}

@@ -45,11 +45,12 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from degusta_learn.evaluate.scoring import check_records, score_predictions  # noqa: E402
+from degusta_learn.errors import DegustaError  # noqa: E402
+from degusta_learn.evaluate.scoring import score_file  # noqa: E402
 from degusta_learn.evaluate.summary import rank_methods, summarize  # noqa: E402
 from degusta_learn.methods import run_predict, run_train  # noqa: E402
 from degusta_learn.metrics import paired_bootstrap  # noqa: E402
-from degusta_learn.scene import load_dataset, make_episodes, read_predictions  # noqa: E402
+from degusta_learn.scene import load_dataset, make_episodes  # noqa: E402
 from degusta_learn.shipped import shipped_config  # noqa: E402
 from degusta_learn.synth import RelationalOptions, generate_dataset  # noqa: E402
 
@@ -132,13 +133,10 @@ def score(data: Path, files: list[Path]) -> list:
     episodes = {e.id: e for e in make_episodes(ds, CONTEXT, SPLIT, SPLIT_SEED)}
     rows = []
     for path in files:
-        preds = read_predictions(path, ds.catalog, episodes)
-        for note in check_records(path, preds, ds, episodes):
-            print(f"note: {note}", file=sys.stderr)
-        missing = set(episodes) - {p.episode for p in preds}
-        if missing:
-            raise SystemExit(f"{path}: {len(missing)} episodes have no prediction")
-        rows += score_predictions(ds, preds, episodes)
+        try:
+            rows += score_file(ds, path, episodes, note=lambda text: print(f"note: {text}", file=sys.stderr))
+        except DegustaError as e:
+            raise SystemExit(str(e)) from None
     return rows
 
 

@@ -285,3 +285,20 @@ def score_predictions(ds: Dataset, predictions: list[Prediction],
             tokens=usage_number(pred.diagnostics, "tokens"), cost_usd=usage_number(pred.diagnostics, "cost_usd"),
             **answer_counts(pred.diagnostics)))
     return rows
+
+
+def score_file(ds: Dataset, path: str | Path, episodes: dict[str, Episode], note=None) -> list[EpisodeRow]:
+    """One predictions file scored on exactly `episodes` (as `degusta evaluate` scores it): every episode must have
+    a prediction (one line names how many lack one). `note(text)` receives `check_records`' notes (default:
+    dropped)."""
+    from degusta_learn.scene import read_predictions
+
+    preds = read_predictions(path, ds.catalog, episodes)
+    for text in check_records(path, preds, ds, episodes):
+        if note is not None:
+            note(text)
+    missing = set(episodes) - {p.episode for p in preds}
+    if missing:
+        raise DegustaError(f"{path}: {len(missing)} of the {len(episodes)} episodes have no prediction "
+                           f"(e.g. {min(missing)})")
+    return score_predictions(ds, preds, episodes)
