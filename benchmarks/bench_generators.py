@@ -27,6 +27,7 @@ participants; none is re-tuned for the relational data, which if anything favour
 Usage:
     python benchmarks/bench_generators.py --out runs/bench_generators              # ~30 s on a free core
     python benchmarks/bench_generators.py --out runs/bench_generators --trained    # + two trainings per generator
+    python benchmarks/bench_generators.py --out runs/bench_generators --plausible  # naturalistic with plausible tables
 """
 
 import os
@@ -65,19 +66,30 @@ CONTEXT, SPLIT, SPLIT_SEED = 4, "test", 0
 ALPHA = 0.05
 
 
+PLAUSIBLE = "naturalistic_plausible"
+"""`--plausible`: the naturalistic generator with every table plausible (synth/plausible.py) in its place."""
+
+
+def generator_names(plausible: bool) -> tuple[str, str]:
+    """The two datasets compared: the naturalistic one (its plausible variant with `--plausible`) and relational."""
+    return (PLAUSIBLE if plausible else GENERATORS[0]), GENERATORS[1]
+
+
 def dataset(out: Path, name: str, seed: int) -> Path:
     """out/data/<name>: reused when the same generator made it with `seed` and its default options, else generated
-    (replacing only a dataset degusta generated)."""
+    (replacing only a dataset degusta generated). `PLAUSIBLE` is the naturalistic generator with `plausible` on."""
     folder = out / "data" / name
+    generator, plausible = ("naturalistic", True) if name == PLAUSIBLE else (name, name == "relational")
     options = asdict(RelationalOptions()) if name == "relational" else None
     try:
         meta = json.loads((folder / "meta.json").read_text(encoding="utf-8"))
         if (meta.get("generator"), meta.get("seed"), meta.get("options"), meta.get("plausible", name == "relational")) \
-                == (f"degusta_learn.synth.{name}", seed, options, name == "relational"):
+                == (f"degusta_learn.synth.{generator}", seed, options, plausible):
             return folder
     except (OSError, ValueError):
         pass
-    return generate_dataset(name, folder, seed=seed, overwrite=folder.exists())
+    return generate_dataset(generator, folder, seed=seed, overwrite=folder.exists(),
+                            plausible=name == PLAUSIBLE)
 
 
 def _quiet(*_args, **_kwargs) -> None:
@@ -198,21 +210,22 @@ def paired(rows: list, a: str, b: str, n_resamples: int, seed: int) -> dict:
                             n_resamples=n_resamples, seed=seed, clusters=[by[a][e].participant for e in eps])
 
 
-def flips(summaries: dict, rows: dict, methods: list[str], n_resamples: int, seed: int) -> list[dict]:
-    """Pairs of methods whose set RMSD order differs between the generators, with each generator's paired,
-    participant-clustered difference mean(b - a) (a: better on the first generator)."""
-    first, second = GENERATORS
-    mean = {g: {m: summaries[g][m]["set_rmsd"]["mean"] for m in methods} for g in GENERATORS}
+def flips(summaries: dict, rows: dict, methods: list[str], n_resamples: int, seed: int,
+          names: tuple[str, str] = GENERATORS) -> list[dict]:
+    """Pairs of methods whose set RMSD order differs between the two datasets `names`, with each one's paired,
+    participant-clustered difference mean(b - a) (a: better on the first)."""
+    first, second = names
+    mean = {g: {m: summaries[g][m]["set_rmsd"]["mean"] for m in methods} for g in names}
     out = []
     for a, b in itertools.combinations(methods, 2):
         if mean[first][a] > mean[first][b]:
             a, b = b, a
         if not mean[second][a] > mean[second][b]:
             continue
-        entry = {"a": a, "b": b, **{g: paired(rows[g], a, b, n_resamples, seed) for g in GENERATORS}}
-        significant = [entry[g]["p_value"] < ALPHA for g in GENERATORS]
+        entry = {"a": a, "b": b, **{g: paired(rows[g], a, b, n_resamples, seed) for g in names}}
+        significant = [entry[g]["p_value"] < ALPHA for g in names]
         entry["verdict"] = ("significant on both (a reversal)" if all(significant) else
-                            f"significant on {GENERATORS[significant.index(True)]} only" if any(significant) else
+                            f"significant on {names[significant.index(True)]} only" if any(significant) else
                             "significant on neither (within noise)")
         out.append(entry)
     return out
@@ -230,26 +243,29 @@ def main(argv=None) -> None:
     ap.add_argument("--trained", action="store_true", help="also train and score learned and set_transformer")
     ap.add_argument("--train-seeds", type=int, nargs="+", default=[0], help="training seeds (--trained): one row each")
     ap.add_argument("--n-bootstrap", type=int, default=2000)
+    ap.add_argument("--plausible", action="store_true",
+                    help=f"the naturalistic generator with every table plausible ({PLAUSIBLE}) in the default's place")
     args = ap.parse_args(argv)
     start = time.perf_counter()
+    names = generator_names(args.plausible)
     summaries, rows = {}, {}
-    for name in GENERATORS:
+    for name in names:
         data = dataset(args.out, name, args.seed)
         rows[name] = score(data, run_methods(name, data, args.out, args.trained, tuple(args.train_seeds)))
         summaries[name] = summarize(rows[name], n_bootstrap=args.n_bootstrap, seed=0, cluster="participant")
-    n_people = len({r.participant for r in rows[GENERATORS[0]]})
-    n_eps = len({r.episode for r in rows[GENERATORS[0]]})
+    n_people = len({r.participant for r in rows[names[0]]})
+    n_eps = len({r.episode for r in rows[names[0]]})
     print(f"# Method ranking on both generators (SYNTHETIC data, seed {args.seed}; test split, split seed "
           f"{SPLIT_SEED}, context {CONTEXT}: {n_eps} episodes of {n_people} participants per generator)\n")
     print("Every setting is the shipped config's, chosen on the naturalistic validation participants (trained "
           "models: checkpoint chosen on each generator's validation participants); the benchmark chooses nothing. "
           f"Intervals: 95% percentile bootstrap over participants, {args.n_bootstrap} resamples.\n")
-    for name in GENERATORS:
+    for name in names:
         print(f"## {name}\n")
         print("\n".join(ranked_table(summaries[name])) + "\n")
-    methods = rank_methods(summaries[GENERATORS[0]])
-    degenerate = [f"{m} ({g})" for g in GENERATORS for m in methods if summaries[g][m].get("degenerate")]
-    tables = [participant_table(rows[g], methods) for g in GENERATORS]
+    methods = rank_methods(summaries[names[0]])
+    degenerate = [f"{m} ({g})" for g in names for m in methods if summaries[g][m].get("degenerate")]
+    tables = [participant_table(rows[g], methods) for g in names]
     rho, tau = rank_correlations(*[sums.sum(1) / counts.sum() for sums, counts in tables])
     boot = bootstrap_correlations(tables, args.n_bootstrap, seed=0)
     lo, hi = np.percentile(boot, [100 * ALPHA / 2, 100 * (1 - ALPHA / 2)], axis=0)
@@ -259,23 +275,23 @@ def main(argv=None) -> None:
     print(f"- intervals: each generator's {n_people} test participants resampled ({args.n_bootstrap} times)")
     if degenerate:
         print(f"- degenerate (ranked last in the tables, by mean in the correlation): {', '.join(degenerate)}")
-    found = flips(summaries, rows, methods, args.n_bootstrap, seed=0)
-    print(f"\n## Pairs whose order flips between {GENERATORS[0]} and {GENERATORS[1]}\n")
+    found = flips(summaries, rows, methods, args.n_bootstrap, seed=0, names=names)
+    print(f"\n## Pairs whose order flips between {names[0]} and {names[1]}\n")
     if not found:
         print("None: every pair of methods is in the same order on both generators.")
     else:
-        print(f"a is ahead on {GENERATORS[0]}, b on {GENERATORS[1]}; difference = set RMSD of b - a (paired, "
+        print(f"a is ahead on {names[0]}, b on {names[1]}; difference = set RMSD of b - a (paired, "
               "participants resampled): > 0 means a ahead.\n")
-        print(f"| a | b | {GENERATORS[0]} | {GENERATORS[1]} | flip |")
+        print(f"| a | b | {names[0]} | {names[1]} | flip |")
         print("|---|---|---:|---:|---|")
         for f in found:
-            print(f"| {f['a']} | {f['b']} | {_diff(f[GENERATORS[0]])} | {_diff(f[GENERATORS[1]])} | {f['verdict']} |")
-    print(f"\n## Neighbours in the {GENERATORS[0]} ranking, on both generators\n")
+            print(f"| {f['a']} | {f['b']} | {_diff(f[names[0]])} | {_diff(f[names[1]])} | {f['verdict']} |")
+    print(f"\n## Neighbours in the {names[0]} ranking, on both generators\n")
     print("difference = set RMSD of the lower-ranked b - a (paired, participants resampled); > 0: a ahead.\n")
-    print(f"| a | b | {GENERATORS[0]} | {GENERATORS[1]} |")
+    print(f"| a | b | {names[0]} | {names[1]} |")
     print("|---|---|---:|---:|")
     for a, b in zip(methods, methods[1:]):
-        print(f"| {a} | {b} | " + " | ".join(_diff(paired(rows[g], a, b, args.n_bootstrap, 0)) for g in GENERATORS)
+        print(f"| {a} | {b} | " + " | ".join(_diff(paired(rows[g], a, b, args.n_bootstrap, 0)) for g in names)
               + " |")
     print(f"\n({time.perf_counter() - start:.0f} s)")
 
