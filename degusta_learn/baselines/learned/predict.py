@@ -23,6 +23,7 @@ from degusta_learn.devices import resolve_device
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import PredictConfig
 from degusta_learn.scene import Dataset, Episode, Placement, Prediction
+from degusta_learn.training.model_checkpoint import load_weights, read_checkpoint, resolve_checkpoint
 
 
 @dataclass
@@ -44,44 +45,12 @@ class LearnedPredictConfig(PredictConfig):
             raise DegustaError("checkpoint: required (a run folder such as runs/learned_cpu, or a .ckpt)")
 
 
-def resolve_checkpoint(path: str | Path) -> Path:
-    """A run folder -> its best.ckpt (else last.ckpt); a file -> itself."""
-    path = Path(path)
-    if path.is_dir():
-        for name in ("best.ckpt", "last.ckpt"):
-            if (path / name).is_file():
-                return path / name
-        raise DegustaError(f"{path}: no best.ckpt or last.ckpt in this run folder (train it first)")
-    if not path.is_file():
-        raise DegustaError(f"{path}: checkpoint not found")
-    return path
-
-
 def load_model(path: str | Path, device: str = "cpu") -> tuple[SlotModel, dict]:
     """Load a learned-model checkpoint weights-only; returns (model in eval mode, hyperparameters with
     "population" as {table id: rows})."""
-    ckpt_path = resolve_checkpoint(path)
-    try:
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any unpickling/format problem is a bad user file
-        raise DegustaError(f"{ckpt_path}: not a loadable weights-only checkpoint ({type(e).__name__}: "
-                           f"{str(e).splitlines()[0][:200]})") from None
-    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
-    kind = hp.get("kind") if isinstance(hp, dict) else None
-    if kind != KIND:
-        raise DegustaError(f"{ckpt_path}: a checkpoint of kind {kind!r}, not a {KIND!r} arrangement model "
-                           f"(use the predict config of the method that trained it)")
-    if hp.get("format") != FORMAT:
-        raise DegustaError(f"{ckpt_path}: a learned-model checkpoint of format {hp.get('format')!r}; this version "
-                           f"reads format {FORMAT} (the slot model): retrain it with `degusta train`")
-    model = SlotModel(ModelConfig(**hp["model"]), Vocab(**hp["vocab"]))
+    ckpt_path, ckpt, hp = read_checkpoint(path, device, KIND, FORMAT, "learned-model (slot model)")
+    model = load_weights(SlotModel(ModelConfig(**hp["model"]), Vocab(**hp["vocab"])), ckpt, ckpt_path, "slot model")
     hp = {**hp, "population": {int(t): rows for t, rows in hp["population"]}}
-    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:  # weights that do not fit this version's model
-        raise DegustaError(f"{ckpt_path}: its weights do not fit this version's slot model "
-                           f"({str(e).splitlines()[-1].strip()[:200]}); retrain it with `degusta train`") from None
     return model.to(device).eval(), hp
 
 

@@ -16,7 +16,6 @@ from pathlib import Path
 import torch
 
 from degusta_learn.baselines.learned.features import Vocab, onto_surface
-from degusta_learn.baselines.learned.predict import resolve_checkpoint
 from degusta_learn.baselines.set_transformer.encoding import SetEncoder, collate_sets
 from degusta_learn.baselines.set_transformer.model import ModelConfig, SetTransformer
 from degusta_learn.baselines.set_transformer.module import FORMAT, KIND
@@ -25,6 +24,7 @@ from degusta_learn.devices import resolve_device
 from degusta_learn.errors import DegustaError
 from degusta_learn.methods import PredictConfig
 from degusta_learn.scene import Dataset, Episode, Placement, Prediction
+from degusta_learn.training.model_checkpoint import load_weights, read_checkpoint, resolve_checkpoint
 
 
 @dataclass
@@ -48,27 +48,9 @@ class SetTransformerPredictConfig(PredictConfig):
 
 def load_model(path: str | Path, device: str = "cpu") -> tuple[SetTransformer, dict]:
     """Load a set-transformer checkpoint weights-only; returns (model in eval mode, hyperparameters)."""
-    ckpt_path = resolve_checkpoint(path)
-    try:
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any unpickling/format problem is a bad user file
-        raise DegustaError(f"{ckpt_path}: not a loadable weights-only checkpoint ({type(e).__name__}: "
-                           f"{str(e).splitlines()[0][:200] if str(e) else ''})") from None
-    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
-    kind = hp.get("kind") if isinstance(hp, dict) else None
-    if kind != KIND:
-        raise DegustaError(f"{ckpt_path}: a checkpoint of kind {kind!r}, not a {KIND!r} model "
-                           f"(use the predict config of the method that trained it)")
-    if hp.get("format") != FORMAT:
-        raise DegustaError(f"{ckpt_path}: a set-transformer checkpoint of format {hp.get('format')!r}; this version "
-                           f"reads format {FORMAT}: retrain it with `degusta train`")
-    model = SetTransformer(ModelConfig(**hp["model"]), Vocab(**hp["vocab"]))
-    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:  # weights that do not fit this version's model
-        raise DegustaError(f"{ckpt_path}: its weights do not fit this version's set transformer "
-                           f"({str(e).splitlines()[-1].strip()[:200]}); retrain it with `degusta train`") from None
+    ckpt_path, ckpt, hp = read_checkpoint(path, device, KIND, FORMAT, "set-transformer")
+    model = load_weights(SetTransformer(ModelConfig(**hp["model"]), Vocab(**hp["vocab"])), ckpt, ckpt_path,
+                         "set transformer")
     return model.to(device).eval(), hp
 
 
