@@ -16,13 +16,15 @@ MAX_MB = 40
 def test_the_shipped_base_is_complete_and_small():
     assert shipped_base() == BASE_DIR, f"{BASE_DIR}: the shipped base is missing (config.json, model.safetensors)"
     for name in ("config.json", "model.safetensors", "tokenizer.json", "processor_config.json", "README.md",
-                 "degusta_base.json", "pretrain_config.yaml", "perception.json"):
+                 "degusta_base.json", "pretrain_config.yaml", "perception.json", "selection.json"):
         assert (BASE_DIR / name).is_file(), name
     size = sum(p.stat().st_size for p in BASE_DIR.rglob("*") if p.is_file())
     assert size <= MAX_MB * 2**20, f"{size / 2**20:.1f} MB"
     card = (BASE_DIR / "README.md").read_text()
     scores = json.loads((BASE_DIR / "perception.json").read_text())
     assert scores["n_images"] >= 500 and "object-set F1" in card  # held-out scores are in the card
+    selection = json.loads((BASE_DIR / "selection.json").read_text())  # how it was chosen: the test looked at once
+    assert selection["protocol"] and selection["test"]["split"] == "test" and "How this build was chosen" in card
 
 
 def test_the_shipped_base_loads_offline_and_answers_one_perception_question(monkeypatch):
@@ -88,11 +90,12 @@ def test_each_shipped_bases_card_gives_the_command_that_rebuilds_it_from_todays_
 def test_the_shipped_record_renders_its_card_and_one_with_the_removed_training_keys_still_reads(tmp_path):
     """The card is `write_card` of the record, byte for byte; a record written before `data.freeze_projector` and
     `data.teacher_weight` were removed (its training facts carry them) still reads and renders the same card."""
-    from degusta_learn.pretrain.export import BASE_META, PERCEPTION, write_card
+    from degusta_learn.pretrain.export import BASE_META, PERCEPTION, SELECTION, write_card
     from degusta_learn.vlm.record import read_record
 
     meta = json.loads((BASE_DIR / BASE_META).read_text())
-    (tmp_path / PERCEPTION).write_text((BASE_DIR / PERCEPTION).read_text())
+    for name in (PERCEPTION, SELECTION):  # the card's perception table and "How this build was chosen"
+        (tmp_path / name).write_text((BASE_DIR / name).read_text())
     card = (BASE_DIR / "README.md").read_text()
     for extra in ({}, {"freeze_projector": False, "teacher_weight": 0.0}):
         (tmp_path / BASE_META).write_text(json.dumps({**meta, "training": {**meta["training"], **extra}}))
