@@ -7,6 +7,8 @@ The suite never downloads: Hugging Face offline mode is set here, before any tes
 from __future__ import annotations
 
 import os
+import signal
+import warnings
 
 os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ["TRANSFORMERS_OFFLINE"] = "1"
@@ -54,3 +56,14 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(autouse=True)
+def _sigint_restored(request):
+    """Every test starts with Python's own Ctrl-C handler, and one that leaves another behind is named: a library
+    (Lightning, a server) that sets SIGINT to "ignore" and does not put it back would otherwise make every later
+    test's Ctrl-C, and every subprocess it starts, ignore the signal (the signal tests then fail far from the cause)."""
+    yield
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        warnings.warn(f"{request.node.nodeid} left SIGINT set to another handler; restored", stacklevel=1)
