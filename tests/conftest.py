@@ -62,7 +62,10 @@ def one_torch_thread():
 def _sigint_restored(request):
     """Every test starts with Python's own Ctrl-C handler, and one that leaves another behind is named: a library
     (Lightning, a server) that sets SIGINT to "ignore" and does not put it back would otherwise make every later
-    test's Ctrl-C, and every subprocess it starts, ignore the signal (the signal tests then fail far from the cause)."""
+    test's Ctrl-C, and every subprocess it starts, ignore the signal (the signal tests then fail far from the cause).
+    A suite started with SIGINT ignored (a background job of a non-interactive shell) gets Python's handler too."""
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         signal.signal(signal.SIGINT, signal.default_int_handler)
