@@ -31,7 +31,7 @@ import numpy as np
 
 from degusta_learn.errors import DegustaError
 from degusta_learn.evaluate.scoring import score_file
-from degusta_learn.files.atomic import atomic_write_text
+from degusta_learn.files.jsonio import atomic_write_json
 from degusta_learn.metrics import bootstrap_ci, paired_bootstrap
 from degusta_learn.pretrain.export import SELECTION
 from degusta_learn.scene import load_dataset, make_episodes
@@ -136,7 +136,7 @@ def record(base: Path, section: str, result: dict, protocol: str | None, replace
     if protocol:
         data["protocol"] = protocol
     data[section] = {**result, "date": datetime.date.today().isoformat()}
-    atomic_write_text(path, json.dumps(data, indent=1) + "\n")
+    atomic_write_json(path, data)  # refuses a value the strict reader would not take back (NaN)
     return path
 
 
