@@ -27,7 +27,7 @@ participants; none is re-tuned for the relational data, which if anything favour
 Usage:
     python benchmarks/bench_generators.py --out runs/bench_generators              # ~30 s on a free core
     python benchmarks/bench_generators.py --out runs/bench_generators --trained    # + two trainings per generator
-    python benchmarks/bench_generators.py --out runs/bench_generators --plausible  # naturalistic with plausible tables
+    python benchmarks/bench_generators.py --out runs/bench_generators --legacy     # naturalistic's legacy tables
 """
 
 import os
@@ -66,30 +66,30 @@ CONTEXT, SPLIT, SPLIT_SEED = 4, "test", 0
 ALPHA = 0.05
 
 
-PLAUSIBLE = "naturalistic_plausible"
-"""`--plausible`: the naturalistic generator with every table plausible (synth/plausible.py) in its place."""
+LEGACY = "naturalistic_legacy"
+"""`--legacy`: the naturalistic generator's legacy tables (before every table kept synth/plausible.py's rules)."""
 
 
-def generator_names(plausible: bool) -> tuple[str, str]:
-    """The two datasets compared: the naturalistic one (its plausible variant with `--plausible`) and relational."""
-    return (PLAUSIBLE if plausible else GENERATORS[0]), GENERATORS[1]
+def generator_names(legacy: bool) -> tuple[str, str]:
+    """The two datasets compared: the naturalistic one (its legacy tables with `--legacy`) and relational."""
+    return (LEGACY if legacy else GENERATORS[0]), GENERATORS[1]
 
 
 def dataset(out: Path, name: str, seed: int) -> Path:
     """out/data/<name>: reused when the same generator made it with `seed` and its default options, else generated
-    (replacing only a dataset degusta generated). `PLAUSIBLE` is the naturalistic generator with `plausible` on."""
+    (replacing only a dataset degusta generated). `LEGACY` is the naturalistic generator with `legacy` on."""
     folder = out / "data" / name
-    generator, plausible = ("naturalistic", True) if name == PLAUSIBLE else (name, name == "relational")
+    generator, plausible = ("naturalistic", False) if name == LEGACY else (name, True)
     options = asdict(RelationalOptions()) if name == "relational" else None
     try:
         meta = json.loads((folder / "meta.json").read_text(encoding="utf-8"))
-        if (meta.get("generator"), meta.get("seed"), meta.get("options"), meta.get("plausible", name == "relational")) \
+        if (meta.get("generator"), meta.get("seed"), meta.get("options"), meta.get("plausible", False)) \
                 == (f"degusta_learn.synth.{generator}", seed, options, plausible):
             return folder
     except (OSError, ValueError):
         pass
     return generate_dataset(generator, folder, seed=seed, overwrite=folder.exists(),
-                            plausible=name == PLAUSIBLE)
+                            legacy=name == LEGACY)
 
 
 def _quiet(*_args, **_kwargs) -> None:
@@ -243,11 +243,11 @@ def main(argv=None) -> None:
     ap.add_argument("--trained", action="store_true", help="also train and score learned and set_transformer")
     ap.add_argument("--train-seeds", type=int, nargs="+", default=[0], help="training seeds (--trained): one row each")
     ap.add_argument("--n-bootstrap", type=int, default=2000)
-    ap.add_argument("--plausible", action="store_true",
-                    help=f"the naturalistic generator with every table plausible ({PLAUSIBLE}) in the default's place")
+    ap.add_argument("--legacy", action="store_true",
+                    help=f"the naturalistic generator's legacy tables ({LEGACY}) in the default's place")
     args = ap.parse_args(argv)
     start = time.perf_counter()
-    names = generator_names(args.plausible)
+    names = generator_names(args.legacy)
     summaries, rows = {}, {}
     for name in names:
         data = dataset(args.out, name, args.seed)

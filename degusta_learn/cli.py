@@ -72,9 +72,9 @@ def cmd_data_generate(args) -> str:
     from degusta_learn.config.yaml_io import apply_overrides
     from degusta_learn.synth import generate_dataset
 
-    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite, plausible=args.plausible,
+    out = generate_dataset(args.name, args.out, seed=args.seed, overwrite=args.overwrite, legacy=args.legacy,
                            options=apply_overrides({}, args.set))
-    return f"wrote the {args.name} dataset (SYNTHETIC{', plausible tables' if args.plausible else ''}) to {out}"
+    return f"wrote the {args.name} dataset (SYNTHETIC{', legacy tables' if args.legacy else ''}) to {out}"
 
 
 def cmd_data_export_sft(args) -> str:
@@ -338,9 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=SEED, default=0)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing dataset folder that degusta generated (nothing else is ever deleted)")
-    p.add_argument("--plausible", action="store_true",
-                   help="naturalistic only: every table keeps the plausibility rules (bounded duplicates per type, "
-                        "a utensil per plate; docs/data.md); off: the default generator's files, byte for byte")
+    p.add_argument("--legacy", action="store_true",
+                   help="naturalistic only: the tables made before every table kept the plausibility rules "
+                        "(bounded duplicates per type, a utensil per plate; docs/data.md), byte for byte")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="relational only: a generator option (participants, noise, multi; docs/generators.md)")
     p.set_defaults(func=cmd_data_generate)

@@ -3,7 +3,7 @@
 Usage:
     degusta data generate naturalistic --out data/naturalistic [--seed 0] [--overwrite]
     degusta data generate simulated --out data/simulated
-    degusta data generate naturalistic --plausible --out data/naturalistic_plausible
+    degusta data generate naturalistic --legacy --out data/naturalistic_legacy   # the tables before plausibility
     degusta data generate relational --out data/relational [--set participants=400 --set noise=2]
 
     from degusta_learn.synth import generate_dataset
@@ -54,11 +54,11 @@ DATASET = OutputKind("dataset", DATASET_FILES, check=_generated_by_us, merge=Fal
 
 
 def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool = False,
-                     plausible: bool = False, options: dict | None = None) -> Path:
+                     legacy: bool = False, options: dict | None = None) -> Path:
     """Write the `name` dataset ("naturalistic", "simulated" or "relational") to folder `out`; returns `out`.
 
-    `plausible` (naturalistic only): every table keeps the rules of plausible.py; off (the default), the files
-    are the default generator's, byte for byte. `options` (relational only; `--set KEY=VALUE`): the relational
+    Every naturalistic table keeps the rules of plausible.py; `legacy` (naturalistic only) writes the tables
+    this generator made before it kept them, byte for byte (about a fifth break one; docs/data.md). `options` (relational only; `--set KEY=VALUE`): the relational
     generator's options (relational.RelationalOptions), each checked, an unknown or impossible one named.
 
     Raises DegustaError for an unknown name, or when `out` exists and is not an empty folder (unless
@@ -68,9 +68,8 @@ def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool 
     """
     if name not in GENERATORS:
         raise DegustaError(f"unknown dataset {name!r} (expected one of {', '.join(GENERATORS)})")
-    if plausible and name != "naturalistic":
-        raise DegustaError(f"plausible: only the naturalistic generator has this option (not {name!r}); "
-                           f"the {name} generator's tables are plausible already")
+    if legacy and name != "naturalistic":
+        raise DegustaError(f"legacy: only the naturalistic generator has legacy tables (not {name!r})")
     if options and name != "relational":
         key = next(iter(options)) if isinstance(options, dict) else "options"
         raise DegustaError(f"{key}: the {name} generator takes no options (only the relational "
@@ -81,7 +80,7 @@ def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool 
     out = Path(out)
     with write_folder(out, DATASET, replace=overwrite) as tmp:
         if name == "naturalistic":
-            ds, styles = naturalistic_with_styles(seed, plausible=plausible)
+            ds, styles = naturalistic_with_styles(seed, plausible=not legacy)
         elif name == "relational":
             ds, styles = relational_with_styles(seed, options)
         else:

@@ -8,10 +8,10 @@ A table is judged from its object types alone. With D = max(1, number of plates)
 - `utensils`: at least one utensil (fork, knife or spoon) per plate.
 
 So "five plates and a knife" breaks `plates` and `utensils`, and three cups beside one plate breaks `cups`.
-The default naturalistic generator draws the types of its `row` and `freeform` templates independently from
-`templates.TYPE_PRIOR`, which breaks these rules on about a fifth of its tables; with `plausible` on
-(`degusta data generate naturalistic --plausible`) those types are drawn from the same prior *conditioned on the
-rules* (rejection sampling), plates and one utensil per plate are always set, and every other template is
+The naturalistic generator's legacy tables (`degusta data generate naturalistic --legacy`) draw the types of its
+`row` and `freeform` templates independently from `templates.TYPE_PRIOR`, which breaks these rules on about a
+fifth of them; its default tables draw those types from the same prior *conditioned on the rules* (rejection
+sampling), plates and one utensil per plate are always set, and every other template is
 unchanged (its place settings already keep the rules). `style_violations` is the guarantee that makes every
 trial of a style plausible: the rules hold for all of its slots, its plates are always set (so D cannot
 change between trials) and its always-set slots hold a utensil per plate. See docs/data.md, "Plausible tables".
