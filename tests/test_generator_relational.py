@@ -171,7 +171,7 @@ def test_the_noise_option_scales_every_persons_noise():
     (["--set", "multi=1.5"], "relational generator: multi: expected a value from 0.0 to 1.0"),
     (["--set", "colour=red"], "relational generator: unknown key 'colour' (known keys: multi, noise, participants)"),
     (["--set", "participants"], "--set 'participants': expected key=value"),
-    (["--plausible"], "plausible: only the naturalistic generator has this option (not 'relational')"),
+    (["--legacy"], "legacy: only the naturalistic generator has legacy tables (not 'relational')"),
 ])
 def test_an_option_that_cannot_make_valid_data_is_refused_naming_the_key(tmp_path, capsys, argv, message):
     out = tmp_path / "d"

@@ -1,4 +1,4 @@
-"""Plausible tables: the rules, the default generator's violations (pinned), the `plausible` option over many seeds."""
+"""Plausible tables: the rules, the default keeping them over many seeds, the legacy tables' violations (pinned)."""
 
 import functools
 import hashlib
@@ -38,10 +38,13 @@ def test_core_mask_keeps_plates_and_a_utensil_per_plate():
     assert core_mask(["fork", "cup", "cup", "spoon"]) == [True, True, True, False]
 
 
-def test_the_default_breaks_the_rules_with_these_counts():
-    ds, styles = naturalistic_with_styles(0)
+def test_the_legacy_tables_break_the_rules_with_these_counts():
+    ds, styles = naturalistic_with_styles(0, plausible=False)
     p000 = [[ds.catalog[o].type for o in a.objects] for a in ds.arrangements if a.participant == "p000"]
     assert all(sorted(t) == ["knife"] + ["plate"] * 5 for t in p000)  # five plates and a knife, every trial
+    default = [[d.catalog[o].type for o in a.objects] for d in [naturalistic_with_styles(0, 1)[0]]
+               for a in d.arrangements]
+    assert all(violations(t) == () for t in default) and all(t.count("plate") <= 4 for t in default)
     # tables breaking each rule, participants with such a table (of 995 tables, 199 participants)
     assert dataset_violations(ds) == {"plates": (6, 2), "cups": (94, 24), "knives": (40, 9), "forks": (17, 5),
                                       "spoons": (8, 3), "utensils": (66, 19), "any": (209, 52)}
@@ -85,23 +88,30 @@ def _sha(path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_the_default_files_are_pinned_and_plausible_is_opt_in(tmp_path, capsys):
+def test_the_default_and_the_legacy_files_are_pinned(tmp_path, capsys):
     out = generate_dataset("naturalistic", tmp_path / "d")
-    # the default dataset as it was before the option existed (seed 0)
-    assert _sha(out / "arrangements.jsonl") == "aae2123dca77572ad620c48cb929b1733b116ca714c00ca14acb176f3899706f"
-    assert _sha(out / "latent_styles.json") == "e3bc403a09e044c1e9a19515c9c8af929450dd58fc01fbe7e9ac6efa9cac691e"
-    assert _sha(out / "meta.json") == "0d0a0e1a1e1f29b528c8db2780fb5ab83e11c2313a60ccd9c9b8c2e1f2bf8ba8"
-    assert main(["data", "generate", "naturalistic", "--plausible", "--out", str(tmp_path / "p")]) == 0
-    assert "plausible tables" in capsys.readouterr().out
-    meta = json.loads((tmp_path / "p" / "meta.json").read_text())
+    # the default (seed 0): every table plausible; the numbers of README and RESULTS are measured on these files
+    assert _sha(out / "arrangements.jsonl") == "dc0c2cda421399f4d7c26463bd8953a84b8379774c921f553475dffff42e1909"
+    assert _sha(out / "latent_styles.json") == "39a4ab7a266b251ffd2d5815c9be19243e94d017b34bc24d8bc5c677a7ad3559"
+    assert _sha(out / "meta.json") == "656f7828581ee265eecb1ad30b316caa185f08a58327128f1cad66ad36368746"
+    meta = json.loads((out / "meta.json").read_text())
     assert meta["plausible"] is True and "plausibility rules" in meta["description"]
-    assert _sha(tmp_path / "p" / "arrangements.jsonl") != _sha(out / "arrangements.jsonl")
+    # --legacy: the default as it was before every table kept the rules, byte for byte
+    assert main(["data", "generate", "naturalistic", "--legacy", "--out", str(tmp_path / "legacy")]) == 0
+    assert "legacy tables" in capsys.readouterr().out
+    legacy = tmp_path / "legacy"
+    assert _sha(legacy / "arrangements.jsonl") == "aae2123dca77572ad620c48cb929b1733b116ca714c00ca14acb176f3899706f"
+    assert _sha(legacy / "latent_styles.json") == "e3bc403a09e044c1e9a19515c9c8af929450dd58fc01fbe7e9ac6efa9cac691e"
+    assert _sha(legacy / "meta.json") == "0d0a0e1a1e1f29b528c8db2780fb5ab83e11c2313a60ccd9c9b8c2e1f2bf8ba8"
+    assert "plausible" not in json.loads((legacy / "meta.json").read_text())
+    for name in ("catalog.json", "tables.json"):  # the same objects and tables: the shipped base saw these
+        assert _sha(legacy / name) == _sha(out / name)
 
 
 def test_an_option_the_generator_cannot_honour_is_refused(tmp_path, capsys):
-    with pytest.raises(DegustaError, match="plausible: only the naturalistic generator"):
-        generate_dataset("simulated", tmp_path / "s", plausible=True)
-    assert main(["data", "generate", "simulated", "--plausible", "--out", str(tmp_path / "s")]) == 2
+    with pytest.raises(DegustaError, match="legacy: only the naturalistic generator"):
+        generate_dataset("simulated", tmp_path / "s", legacy=True)
+    assert main(["data", "generate", "simulated", "--legacy", "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "plausible" in err
+    assert err.count("\n") == 1 and "legacy" in err
     assert not (tmp_path / "s").exists()

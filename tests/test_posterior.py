@@ -150,7 +150,9 @@ def tiny(tmp_path_factory):
 
 
 def test_refuses_data_the_generator_did_not_make(tiny, small_dataset_dir, tmp_path):
-    assert check_generator(load_dataset(tiny)) == (0, False)
+    assert check_generator(load_dataset(tiny)) == (0, True)
+    legacy = save_dataset(naturalistic_with_styles(0, 8, plausible=False)[0], tmp_path / "legacy")
+    assert check_generator(load_dataset(legacy)) == (0, False)  # the legacy tables' generator, from meta.json
     with pytest.raises(DegustaError, match="posterior needs data made by `degusta data generate naturalistic`"):
         check_generator(load_dataset(small_dataset_dir))
     edited = tmp_path / "edited"
