@@ -70,13 +70,16 @@ def test_a_tiny_fine_tune_records_its_selection_decoding_and_predict_can_use_it(
 
 
 def test_a_decoding_other_than_the_selections_is_one_warning_line_naming_the_keys(tmp_path, capsys):
-    cfg = _predict_cfg(_best_folder(tmp_path), DEPLOYED)
+    folder = _best_folder(tmp_path)
+    cfg = _predict_cfg(folder, DEPLOYED)
     assert cfg.decoding.n == 5 and cfg.decoding.temperature == 0.5  # a warning, not a change: computed as before
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("degusta: warning: decoding:")
     assert ("on max_new_tokens: 320 vs auto, n: 1 vs 5, aggregation: steps vs greedy_votes_pooled, "
             "temperature: 0.0 vs 0.5 (selected vs here)") in lines[0]
     assert "constrained" not in lines[0] and "on_repeat" not in lines[0]
+    _predict_cfg(folder, DEPLOYED)  # the same config built again in this run (compare does): once
+    assert capsys.readouterr().err == ""
 
 
 def test_the_selections_own_decoding_warns_nothing(tmp_path, capsys):

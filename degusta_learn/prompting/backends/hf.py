@@ -217,10 +217,17 @@ def adapter_decoding(model: ModelSettings, decoding: DecodingSettings, decoding_
     differing = decoding_differences(recorded, decoding) if recorded is not None else []
     if differing:
         shown = ", ".join(f"{k}: {_shown(recorded, k)} vs {_shown(decoding, k)}" for k in differing)
-        print(f"degusta: warning: decoding: differs from the validation decoding that selected model.adapter "
-              f"({local / SELECTION_FILE}) on {shown} (selected vs here); decoding_from: adapter predicts as "
-              "it was selected (docs/finetune.md, \"Selection that matches deployment\")", file=sys.stderr)
+        line = (f"degusta: warning: decoding: differs from the validation decoding that selected model.adapter "
+                f"({local / SELECTION_FILE}) on {shown} (selected vs here); decoding_from: adapter predicts as "
+                "it was selected (docs/finetune.md, \"Selection that matches deployment\")")
+        if line not in _WARNED:  # a config is built more than once in a run (compare checks every method first)
+            _WARNED.add(line)
+            print(line, file=sys.stderr)
     return decoding
+
+
+_WARNED: set[str] = set()
+"""The decoding warnings this process has printed: each is printed once."""
 
 
 def _shown(decoding: DecodingSettings, key: str) -> str:
