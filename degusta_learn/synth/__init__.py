@@ -11,8 +11,9 @@ Usage:
 Every modelling choice is documented in docs/data.md and in the module docstrings: style.py (what a
 latent style is), templates.py (how styles are drawn), realize.py (style -> arrangements),
 ratings.py (jitter-study ratings), simulated.py (the paper's 72 experiments), oracle.py (the oracle: each
-participant's own latent style), plausible.py (the rules every naturalistic table keeps; `--legacy` makes the tables before them), posterior.py with
-posterior_model.py and posterior_prior.py (the achievable floor: the posterior predictive under the generator).
+participant's own latent style), plausible.py (the rules every naturalistic table keeps; `--legacy` makes the
+tables before them), posterior.py with posterior_model.py and posterior_prior.py (the achievable floor: the
+posterior predictive under the generator).
 The second family, `relational` (placement rules, not slots; docs/generators.md): relational.py (the generator and
 its options), relational_style.py, relational_habits.py (the draws), relational_realize.py (style -> arrangements)
 and relational_oracle.py.
