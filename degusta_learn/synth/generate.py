@@ -58,8 +58,9 @@ def generate_dataset(name: str, out: str | Path, seed: int = 0, overwrite: bool 
     """Write the `name` dataset ("naturalistic", "simulated" or "relational") to folder `out`; returns `out`.
 
     Every naturalistic table keeps the rules of plausible.py; `legacy` (naturalistic only) writes the tables
-    this generator made before it kept them, byte for byte (about a fifth break one; docs/data.md). `options` (relational only; `--set KEY=VALUE`): the relational
-    generator's options (relational.RelationalOptions), each checked, an unknown or impossible one named.
+    this generator made before it kept them, byte for byte (about a fifth break one; docs/data.md).
+    `options` (relational only; `--set KEY=VALUE`): the relational generator's options
+    (relational.RelationalOptions), each checked, an unknown or impossible one named.
 
     Raises DegustaError for an unknown name, or when `out` exists and is not an empty folder (unless
     `overwrite`, which replaces it only once the new folder is complete, and only when it is a dataset
