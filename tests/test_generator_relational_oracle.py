@@ -1,6 +1,6 @@
 """The relational oracle, reached by `method: oracle` through meta.json "generator": it matches the in-memory rules,
 beats consensus and scores about the generator's own noise; other generators' data and malformed styles are
-refused in one line; the naturalistic-only posterior refuses relational data naming the generator."""
+refused in one line; the posterior floor refuses data of a generator it has no prior for, naming it."""
 
 import json
 import shutil
@@ -117,13 +117,14 @@ def test_a_malformed_relational_style_is_one_line_naming_the_field(rel_dir, tmp_
     assert not (tmp_path / "p.jsonl").exists()
 
 
-def test_the_posterior_floor_refuses_relational_data_naming_the_generator(rel_dir, tmp_path, capsys):
-    assert main(["predict", "--config", "posterior", "--set", f"dataset={rel_dir}",
+def test_the_posterior_floor_refuses_a_generator_it_has_no_prior_for(tmp_path, capsys):
+    sim = generate_dataset("simulated", tmp_path / "simulated")
+    assert main(["predict", "--config", "posterior", "--set", f"dataset={sim}",
                  "--set", f"out={tmp_path / 'p.jsonl'}"]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
-    assert "posterior needs data made by `degusta data generate naturalistic`" in err
-    assert "'degusta_learn.synth.relational'" in err and not (tmp_path / "p.jsonl").exists()
+    assert "posterior needs data made by `degusta data generate naturalistic` or `degusta data generate relational`" in err
+    assert "'degusta_learn.synth.simulated'" in err and not (tmp_path / "p.jsonl").exists()
 
 
 def test_the_benchmarks_rank_statistics():

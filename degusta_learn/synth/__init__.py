@@ -15,8 +15,8 @@ participant's own latent style), plausible.py (the rules every naturalistic tabl
 tables before them), posterior.py with posterior_model.py and posterior_prior.py (the achievable floor: the
 posterior predictive under the generator).
 The second family, `relational` (placement rules, not slots; docs/generators.md): relational.py (the generator and
-its options), relational_style.py, relational_habits.py (the draws), relational_realize.py (style -> arrangements)
-and relational_oracle.py.
+its options), relational_style.py, relational_habits.py (the draws), relational_realize.py (style -> arrangements),
+relational_oracle.py and relational_posterior.py (its floor).
 """
 
 from degusta_learn.synth.generate import GENERATORS, generate_dataset

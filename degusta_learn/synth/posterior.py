@@ -1,5 +1,6 @@
 """The achievable floor (method `posterior`): the posterior-predictive arrangement under the generator that made
-the data. SYNTHETIC data from `degusta data generate naturalistic` only.
+the data. SYNTHETIC data from `degusta data generate naturalistic` (this module) or `degusta data generate
+relational` (relational_posterior.py, the same decision over that generator's prior and trial model) only.
 
 The oracle knows each participant's latent style (an information ceiling); `posterior` knows only what a method
 could know: the context arrangements, and the generator (its prior over styles and its noise model). For each
@@ -27,8 +28,8 @@ Gaussian priors with the moments of the template draws on anchors and offsets (t
 are not used, so a method that knew them could do slightly better); Laplace posteriors; the surface fit held
 at its effect on the mode; independent slots. The method reads no latent style and no other participant.
 
-It refuses a dataset that the naturalistic generator did not make (no meta.json `generator` and `seed`, or
-arrangements other than the generator's for that seed), such as a researcher's own data, in one line.
+It refuses a dataset that neither generator made (no meta.json `generator` and `seed`, or arrangements other than
+the generator's for that seed and options), such as a researcher's own data, in one line.
 
 Usage:
     degusta predict --config configs/posterior.yaml
@@ -51,12 +52,13 @@ from degusta_learn.metrics.kabsch import kabsch_sq_residuals_batch
 from degusta_learn.metrics.matching import as_complex, assign
 from degusta_learn.scene import Catalog, Dataset, Episode, Placement, Prediction, Table
 from degusta_learn.synth.posterior_model import Geometry, Track, Trial, fit_geometry, hypotheses, make_tracks, rematch
-from degusta_learn.synth.posterior_prior import GeneratorPrior, distinct_modes
+from degusta_learn.synth.posterior_prior import GeneratorPrior, distinct_modes, sample_distinct
 from degusta_learn.synth.realize import expected_arrangement, sample_arrangement
 from degusta_learn.synth.style import Noise, Setting, Slot, Style
 from degusta_learn.synth.templates import TEMPLATES, sample_style
 
 GENERATOR = "degusta_learn.synth.naturalistic"
+RELATIONAL = "degusta_learn.synth.relational"
 THRESHOLDS = (0.3, 0.5, 0.7)
 """Inclusion probabilities above which a context slot is set in a candidate (the draws pick among them)."""
 LOG_PRIOR = {"single": math.log(1.0 - TEMPLATES["multi"]), "multi": math.log(TEMPLATES["multi"])}
@@ -82,13 +84,16 @@ class PosteriorConfig(PredictConfig):
     """Context >= 1: passes of local search from the best threshold candidate (set or leave out one slot, give a
     slot another of its likely objects, switch hypothesis), each keeping the move of least expected set RMSD;
     0 = the threshold candidates only."""
+    structures: int = 8
+    """Relational data, context >= 1: how many of the prior's structures (those that explain the context best at
+    their own draw's numbers) are fitted and weighed (more: a wider posterior, slower; relational_posterior.py)."""
     search_objects: bool = False
     """Let the search give a slot one of its other likely objects: a lower set RMSD (through the feature matching)
     at a large cost in object accuracy; off, every slot keeps its most probable object."""
 
     def __post_init__(self):
         super().__post_init__()
-        for key, least in (("prior_styles", 1), ("candidates", 1), ("samples", 1), ("search", 0)):
+        for key, least in (("prior_styles", 1), ("candidates", 1), ("samples", 1), ("search", 0), ("structures", 1)):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise DegustaError(f"{key}: expected an integer >= {least}, got {value!r}")
@@ -99,30 +104,70 @@ class PosteriorConfig(PredictConfig):
 
 def check_generator(ds: Dataset) -> tuple[int, bool]:
     """(seed, plausible) of the naturalistic generator that made `ds`; DegustaError naming why if none did."""
-    where = str(ds.root / "meta.json") if ds.root is not None else "the dataset's meta"
+    meta = _made_by(ds)
+    if meta["generator"] != GENERATOR:
+        raise DegustaError(f"{REFUSE}: {_where(ds)} names generator {meta['generator']!r}, not {GENERATOR!r}")
+    plausible = meta.get("plausible", False) is True
+    from degusta_learn.synth.naturalistic import naturalistic_with_styles
+
+    made, _ = naturalistic_with_styles(meta["seed"], _participants(ds), plausible=plausible)
+    _same_arrangements(ds, made, f"with {_where(ds)}'s seed {meta['seed']}{' (plausible)' if plausible else ''}")
+    return meta["seed"], plausible
+
+
+def check_relational(ds: Dataset) -> dict:
+    """The options of the relational generator that made `ds` (meta.json); DegustaError naming why if none did."""
+    meta = _made_by(ds)
+    if meta["generator"] != RELATIONAL:
+        raise DegustaError(f"{REFUSE}: {_where(ds)} names generator {meta['generator']!r}, not {RELATIONAL!r}")
+    from degusta_learn.synth.relational import relational_options, relational_with_styles
+
+    try:
+        options = relational_options({**(meta.get("options") or {}), "participants": max(3, _participants(ds))})
+    except DegustaError as e:
+        raise DegustaError(f"{REFUSE}: {_where(ds)}'s options: {e}") from None
+    made, _ = relational_with_styles(meta["seed"], options)
+    _same_arrangements(ds, made, f"with {_where(ds)}'s seed {meta['seed']} and options")
+    return {"multi": options.multi, "noise": options.noise}
+
+
+REFUSE = ("posterior needs data made by `degusta data generate naturalistic` or `degusta data generate relational` "
+          "(its generator is the prior)")
+
+
+def _where(ds: Dataset) -> str:
+    return str(ds.root / "meta.json") if ds.root is not None else "the dataset's meta"
+
+
+def _made_by(ds: Dataset) -> dict:
+    """meta.json of `ds` when it names a generator the floor knows and an integer seed."""
     meta = ds.meta or {}
-    refuse = "posterior needs data made by `degusta data generate naturalistic` (its generator is the prior)"
-    if meta.get("generator") != GENERATOR:
-        raise DegustaError(f"{refuse}: {where} names generator {meta.get('generator')!r}, not {GENERATOR!r}")
+    if meta.get("generator") not in (GENERATOR, RELATIONAL):
+        raise DegustaError(f"{REFUSE}: {_where(ds)} names generator {meta.get('generator')!r}, not {GENERATOR!r} "
+                           f"or {RELATIONAL!r}")
     seed = meta.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int):
-        raise DegustaError(f"{refuse}: {where} has no integer 'seed' to regenerate it from")
-    plausible = meta.get("plausible", False) is True
-    index = {}
+        raise DegustaError(f"{REFUSE}: {_where(ds)} has no integer 'seed' to regenerate it from")
+    return meta
+
+
+def _participants(ds: Dataset) -> int:
+    """How many participants the generator must make to cover `ds` (its ids are p000, p001, ...)."""
+    index = []
     for pid in ds.participants:
         m = re.fullmatch(r"p(\d{3,})", pid)
         if not m or f"p{int(m.group(1)):03d}" != pid:
-            raise DegustaError(f"{refuse}: participant {pid!r} is not one the generator names (p000, p001, ...)")
-        index[pid] = int(m.group(1))
-    from degusta_learn.synth.naturalistic import naturalistic_with_styles
+            raise DegustaError(f"{REFUSE}: participant {pid!r} is not one the generator names (p000, p001, ...)")
+        index.append(int(m.group(1)))
+    return max(index, default=-1) + 1
 
-    made, _ = naturalistic_with_styles(seed, max(index.values(), default=-1) + 1, plausible=plausible)
+
+def _same_arrangements(ds: Dataset, made: Dataset, how: str) -> None:
     made_by_key = {(a.participant, a.trial): a.to_json() for a in made.arrangements}
     for a in ds.arrangements:
         if made_by_key.get((a.participant, a.trial)) != a.to_json():
-            raise DegustaError(f"{refuse}: participant {a.participant!r} trial {a.trial} is not what the generator "
-                               f"makes with {where}'s seed {seed}{' (plausible)' if plausible else ''}")
-    return seed, plausible
+            raise DegustaError(f"{REFUSE}: participant {a.participant!r} trial {a.trial} is not what the generator "
+                               f"makes {how}")
 
 
 class Posterior:
@@ -182,7 +227,7 @@ class Posterior:
             g = fits[h]
             m = int(rng.choice(len(objects.weights), p=objects.weights))
             particle = prior.styles[m]
-            favourites = _sample_distinct(objects, m, rng)
+            favourites = sample_distinct(objects, m, rng)
             p = [prior.sample_inclusion(tr.type, n, k, rng) for tr, n in zip(tracks, seen)]
             anchors, offsets = g.sample(rng)
             noise = Noise(position=g.sigma, rotation=particle.noise.rotation, anchor=particle.noise.anchor,
@@ -225,16 +270,20 @@ class Posterior:
             "tracks": len(tracks), "set_tracks": int(sum(state[1])), "position_noise": round(g.sigma, 5)}
 
     def _least_risk(self, states: list, answer, draws: list[list[Placement]]) -> tuple:
-        """The state whose answer has the least mean set RMSD against the draws, and that mean (the expected set
-        RMSD under the posterior predictive); states with the same answer are scored once."""
-        answers: dict[tuple, tuple] = {}
-        for st in states:
-            placements = answer(st)
-            answers.setdefault(_key(placements), (st, placements))
-        found = list(answers.values())
-        risk = [expected_set_rmsd(self.ds.catalog, placements, draws) for _, placements in found]
-        best = int(np.argmin(risk))
-        return found[best][0], float(risk[best])
+        return least_risk(self.ds.catalog, states, answer, draws)
+
+
+def least_risk(catalog: Catalog, states: list, answer, draws: list[list[Placement]]) -> tuple:
+    """The state whose answer has the least mean set RMSD against the draws, and that mean (the expected set
+    RMSD under the posterior predictive); states with the same answer are scored once."""
+    answers: dict[tuple, tuple] = {}
+    for st in states:
+        placements = answer(st)
+        answers.setdefault(_key(placements), (st, placements))
+    found = list(answers.values())
+    risk = [expected_set_rmsd(catalog, placements, draws) for _, placements in found]
+    best = int(np.argmin(risk))
+    return found[best][0], float(risk[best])
 
 
 def expected_set_rmsd(catalog: Catalog, prediction: list[Placement], draws: list[list[Placement]]) -> float:
@@ -285,18 +334,6 @@ def _rotations(trials: list[Trial], tracks: list[Track], g: Geometry) -> list[fl
     return out
 
 
-def _sample_distinct(objects, m: int, rng: np.random.Generator) -> list[int]:
-    """Favourites of every track under particle m, drawn from their posteriors without repeating an object."""
-    used: set[int] = set()
-    out = []
-    for ids, post in zip(objects.ids, objects.favourite):
-        p = post[m] * np.array([int(o) not in used for o in ids])
-        p = p / p.sum() if p.sum() > 0 else np.full(len(ids), 1.0 / len(ids))
-        out.append(int(rng.choice(ids, p=p)))
-        used.add(out[-1])
-    return out
-
-
 def _style(participant: str, g: Geometry, anchors, offsets, tracks: list[Track], order: list[int],
            objects: list[int], p_include: list[float], rotation: list[float], noise: Noise, taste: Style) -> Style:
     """A latent style with the fitted settings and slots (facing 0: the offsets are in table axes), the taste
@@ -309,8 +346,16 @@ def _style(participant: str, g: Geometry, anchors, offsets, tracks: list[Track],
 
 
 def run(cfg: PosteriorConfig, ds: Dataset, episodes: list[Episode]) -> list[Prediction]:
-    _, plausible = check_generator(ds)
-    model = Posterior(ds, cfg, plausible)
+    if _made_by(ds)["generator"] == RELATIONAL:
+        from degusta_learn.synth.relational_posterior import RelationalPosterior
+
+        if cfg.search_objects:
+            raise DegustaError("search_objects: true is for naturalistic data; the relational floor keeps each rule's "
+                               "most probable object (leave it false)")
+
+        model = RelationalPosterior(ds, cfg, check_relational(ds), lambda *a: least_risk(ds.catalog, *a))
+    else:
+        model = Posterior(ds, cfg, check_generator(ds)[1])
     out = []
     for ep in episodes:
         placements, diagnostics = model.predict(ep)
@@ -319,5 +364,5 @@ def run(cfg: PosteriorConfig, ds: Dataset, episodes: list[Episode]) -> list[Pred
 
 
 POSTERIOR = MethodSpec(PosteriorConfig, run, "the posterior-predictive arrangement under the generator that made the "
-                                             "data, given the context (synthetic naturalistic data only): an "
-                                             "achievable floor")
+                                             "data, given the context (synthetic naturalistic or relational data "
+                                             "only): an achievable floor")

@@ -258,7 +258,7 @@ def fit_geometry(trials: list[Trial], tracks: list[Track], hypothesis: str) -> G
             pre = _place(anchors, seat, offsets, *boxes[j], shift[j], turn[j], log_scale[j], (1.0, 0.0, 0.0))
             moves[j] = _surface_move(trials[j], [tracks[a].members[j] for a in set_here], pre[set_here])
     fit = least_squares(residuals, theta, args=(moves, sigma), method="lm")
-    log_ev = _log_evidence(fit.fun, fit.jac, len(obs_xy) * 2, sigma, s_prior)
+    log_ev = log_evidence(fit.fun, fit.jac, len(obs_xy) * 2, sigma, s_prior)
     anchors, offsets, shift, turn, log_scale = unpack(fit.x)
     jtj = fit.jac.T @ fit.jac
     cov = np.linalg.pinv(jtj)[:n_geo, :n_geo]
@@ -293,7 +293,7 @@ def _best_sigma(residuals, theta, moves, n_data: int) -> float:
     for sigma in SIGMAS:
         scale = np.ones(len(r))
         scale[:n_data] = 1.0 / sigma
-        ev = _log_evidence(r * scale, jac * scale[:, None], n_data, sigma, 1.0)
+        ev = log_evidence(r * scale, jac * scale[:, None], n_data, sigma, 1.0)
         if ev > best_ev:
             best, best_ev = sigma, ev
     return float(best)
@@ -308,7 +308,7 @@ def _jacobian(fun, theta: np.ndarray, r0: np.ndarray, eps: float = 1e-7) -> np.n
     return out
 
 
-def _log_evidence(r: np.ndarray, jac: np.ndarray, n_data: int, sigma: float, s_prior) -> float:
+def log_evidence(r: np.ndarray, jac: np.ndarray, n_data: int, sigma: float, s_prior) -> float:
     """Laplace log evidence of whitened residuals `r` (n_data data entries, then one prior entry per parameter):
     -|r|^2 / 2 - n_data log(sigma sqrt(2 pi)) - sum log s_prior - log det(J^T J) / 2."""
     _, logdet = np.linalg.slogdet(jac.T @ jac)

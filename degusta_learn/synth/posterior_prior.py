@@ -46,11 +46,17 @@ class ObjectPosterior:
 class GeneratorPrior:
     """`n` styles from the generator's prior and what `posterior` reads off them (module docstring)."""
 
-    def __init__(self, catalog: Catalog, n: int, seed: int, plausible: bool = False):
-        rng = np.random.default_rng(np.random.SeedSequence([seed, 0x706F7374]))
+    def __init__(self, catalog: Catalog, n: int = 0, seed: int = 0, plausible: bool = False,
+                 styles: list | None = None):
+        """`n` styles drawn with `seed`, or the given `styles` (any with the taste fields and `slots` or `rules`
+        of a type and `p_include` each: the relational floor passes its generator's prior people)."""
+        if styles is None:
+            rng = np.random.default_rng(np.random.SeedSequence([seed, 0x706F7374]))
+            styles = [sample_style(rng, f"prior{i}", catalog, plausible=plausible) for i in range(n)]
         self.catalog = catalog
-        self.styles: list[Style] = [sample_style(rng, f"prior{i}", catalog, plausible=plausible) for i in range(n)]
-        self.p_include = {t: np.array([s.p_include for st in self.styles for s in st.slots if s.type == t])
+        self.styles: list[Style] = styles
+        units = [getattr(st, "slots", None) or getattr(st, "rules", []) for st in styles]
+        self.p_include = {t: np.array([s.p_include for us in units for s in us if s.type == t])
                           for t in catalog.types}
         feats = catalog_features(catalog)
         self.ids = {t: feats[t].ids for t in catalog.types}
@@ -121,4 +127,16 @@ def distinct_modes(ids: list[np.ndarray], predictive: list[np.ndarray]) -> list[
                 out[i] = int(ids[i][j])
                 used.add(out[i])
                 break
+    return out
+
+
+def sample_distinct(objects: ObjectPosterior, m: int, rng: np.random.Generator) -> list[int]:
+    """Favourites of every track under taste particle m, drawn from their posteriors without repeating an object."""
+    used: set[int] = set()
+    out = []
+    for ids, post in zip(objects.ids, objects.favourite):
+        p = post[m] * np.array([int(o) not in used for o in ids])
+        p = p / p.sum() if p.sum() > 0 else np.full(len(ids), 1.0 / len(ids))
+        out.append(int(rng.choice(ids, p=p)))
+        used.add(out[-1])
     return out
