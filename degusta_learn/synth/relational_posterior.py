@@ -65,11 +65,12 @@ from degusta_learn.synth.relational_realize import expected_relational, layout, 
 from degusta_learn.synth.relational_style import SIDES, RelationalStyle
 
 THRESHOLDS = (0.3, 0.5, 0.7)
+"""Inclusion chances above which a seen rule is set in a candidate (the draws pick among them)."""
 PROTOTYPES = 3
+"""Of each structure, the prior draws whose own numbers are tried on the context (the best starts the fit)."""
 SCREEN_STD = 0.03
 """How far (normalized units) a prior draw's own layout may sit from the context before its structure is unlikely:
 the spread of the habits' gaps, directions and seats between people, for choosing which structures to fit."""
-"""Of each structure, the prior draws whose own numbers are tried on the context (the best starts the fit)."""
 MIN_WEIGHT = 0.01
 MISSING_ALWAYS = math.log(1e-3)
 """Log chance of an always-set rule missing from a context table (the generator's rare fallback layouts)."""
@@ -180,7 +181,7 @@ def _screen(style: RelationalStyle, trials: list[Trial], prior: RelationalPrior)
     """How well a prior draw explains the context at its own numbers, as a log score (-inf: it cannot have made a
     context table): Gaussian in the distance of each paired object from where the draw lays it out (`SCREEN_STD`),
     plus the chance of the rules' inclusion pattern (so a rule the context never shows costs what it should)."""
-    total, n, counts = 0.0, 0, Counter()
+    total, counts = 0.0, Counter()
     for trial in trials:
         members = _pair(style, trial)
         if members is None:
@@ -188,7 +189,6 @@ def _screen(style: RelationalStyle, trials: list[Trial], prior: RelationalPrior)
         present = sorted(members)
         xy, _ = layout(style, trial.table, present)
         total += float(np.sum((xy - trial.xy[[members[i] for i in present]]) ** 2))
-        n += len(present)
         counts.update(present)
     k = len(trials)
     return -0.5 * total / SCREEN_STD ** 2 + sum(prior.log_pattern(r.type, r.p_include >= 1.0, counts[i], k)
