@@ -14,7 +14,7 @@ from degusta_learn.methods import get_method
 from degusta_learn.metrics import score_many
 from degusta_learn.scene import load_dataset, make_episodes, save_dataset
 from degusta_learn.synth import generate_dataset, relational_with_styles
-from degusta_learn.synth.posterior import PosteriorConfig, check_relational, least_risk
+from degusta_learn.synth.posterior import PosteriorConfig, check_relational
 from degusta_learn.synth.posterior_model import Trial
 from degusta_learn.synth.relational_posterior import RelationalPosterior, RelationalPrior, fit_structure, signature
 from degusta_learn.synth.relational_realize import expected_relational, oracle_rules, place
@@ -72,7 +72,7 @@ def test_a_structure_that_cannot_have_made_a_table_is_dropped(quiet):
 
 def test_context_zero_is_the_prior_predictive_one_answer_per_table(rel_dir):
     ds = load_dataset(rel_dir)
-    model = RelationalPosterior(ds, _cfg(rel_dir), check_relational(ds), lambda *a: least_risk(ds.catalog, *a))
+    model = RelationalPosterior(ds, _cfg(rel_dir), check_relational(ds))
     episodes = make_episodes(ds, 0, "all", 0)
     answers = {}
     for ep in episodes:
@@ -102,8 +102,7 @@ def test_with_the_persons_structure_in_the_prior_the_floor_is_near_the_oracle_an
     ds = load_dataset(rel_dir)
     _, styles = relational_with_styles(0, {"participants": 12})
     episodes = make_episodes(ds, 4, "all", 0)[::5]
-    model = RelationalPosterior(ds, _cfg(rel_dir, samples=40, structures=2), check_relational(ds),
-                                lambda *a: least_risk(ds.catalog, *a))
+    model = RelationalPosterior(ds, _cfg(rel_dir, samples=40, structures=2), check_relational(ds))
     rng = np.random.default_rng(0)
     model.prior = RelationalPrior(ds.catalog, model.prior.styles + [_perturbed(s, rng) for s in styles])
     scores = {}

@@ -170,16 +170,15 @@ def _same_arrangements(ds: Dataset, made: Dataset, how: str) -> None:
                                f"makes {how}")
 
 
-class Posterior:
-    """The posterior-predictive predictor of one dataset (module docstring)."""
+class PosteriorPredictor:
+    """What both floors share: context 0 answered once per table from the prior predictive, each episode's own
+    random stream, and the least-risk choice. A subclass sets `prior` (with `styles`), `_truth_styles` and
+    `_posterior_predictive`, and says how a style becomes its expected and sampled arrangements."""
 
-    def __init__(self, ds: Dataset, cfg: PosteriorConfig, plausible: bool):
-        self.ds, self.cfg = ds, cfg
-        self.prior = GeneratorPrior(ds.catalog, cfg.prior_styles, cfg.seed, plausible)
-        rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x7472757468]))
-        self._truth_styles = [sample_style(rng, f"draw{i}", ds.catalog, plausible=plausible)
-                              for i in range(cfg.samples)]
-        self._prior_answer: dict[int, tuple[list[Placement], dict]] = {}
+    kind = "hypothesis"
+    """The diagnostics key that names what the answer came from ("prior" at context 0)."""
+    ds: Dataset
+    cfg: PosteriorConfig
 
     def predict(self, ep: Episode) -> tuple[list[Placement], dict]:
         table = self.ds.tables[self.ds.arrangement(ep.participant, ep.target).table]
@@ -194,12 +193,36 @@ class Posterior:
         rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, table.id]))
         candidates = []
         for style in self.prior.styles[:self.cfg.candidates]:
-            placements = expected_arrangement(style, table)
-            ids = self.prior.prior_objects([self.ds.catalog[p.object].type for p in placements])
+            placements = self._expected(style, table)
+            ids = self._prior_objects([self.ds.catalog[p.object].type for p in placements])
             candidates.append([Placement(o, p.x, p.y, p.rotation) for o, p in zip(ids, placements)])
-        draws = [sample_arrangement(s, table, self.ds.catalog, rng) for s in self._truth_styles]
+        draws = [self._sample(s, table, rng) for s in self._truth_styles]
         best, risk = self._least_risk(list(range(len(candidates))), candidates.__getitem__, draws)
-        return candidates[best], {"context": 0, "expected_set_rmsd": round(risk, 5), "hypothesis": "prior"}
+        return candidates[best], {"context": 0, "expected_set_rmsd": round(risk, 5), self.kind: "prior"}
+
+    def _least_risk(self, states: list, answer, draws: list[list[Placement]]) -> tuple:
+        return least_risk(self.ds.catalog, states, answer, draws)
+
+
+class Posterior(PosteriorPredictor):
+    """The posterior-predictive predictor of one naturalistic dataset (module docstring)."""
+
+    def __init__(self, ds: Dataset, cfg: PosteriorConfig, plausible: bool):
+        self.ds, self.cfg = ds, cfg
+        self.prior = GeneratorPrior(ds.catalog, cfg.prior_styles, cfg.seed, plausible)
+        rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x7472757468]))
+        self._truth_styles = [sample_style(rng, f"draw{i}", ds.catalog, plausible=plausible)
+                              for i in range(cfg.samples)]
+        self._prior_answer: dict[int, tuple[list[Placement], dict]] = {}
+
+    def _expected(self, style: Style, table: Table) -> list[Placement]:
+        return expected_arrangement(style, table)
+
+    def _sample(self, style: Style, table: Table, rng) -> list[Placement]:
+        return sample_arrangement(style, table, self.ds.catalog, rng)
+
+    def _prior_objects(self, types: list[str]) -> list[int]:
+        return self.prior.prior_objects(types)
 
     def _posterior_predictive(self, ep: Episode, table: Table, rng) -> tuple[list[Placement], dict]:
         ds, prior = self.ds, self.prior
@@ -268,10 +291,6 @@ class Posterior:
             "context": k, "expected_set_rmsd": round(risk, 5), "hypothesis": g.hypothesis, "search_moves": moves,
             "hypothesis_weights": {f.hypothesis: round(float(w), 4) for f, w in zip(fits, weights)},
             "tracks": len(tracks), "set_tracks": int(sum(state[1])), "position_noise": round(g.sigma, 5)}
-
-    def _least_risk(self, states: list, answer, draws: list[list[Placement]]) -> tuple:
-        return least_risk(self.ds.catalog, states, answer, draws)
-
 
 def least_risk(catalog: Catalog, states: list, answer, draws: list[list[Placement]]) -> tuple:
     """The state whose answer has the least mean set RMSD against the draws, and that mean (the expected set
@@ -353,7 +372,7 @@ def run(cfg: PosteriorConfig, ds: Dataset, episodes: list[Episode]) -> list[Pred
             raise DegustaError("search_objects: true is for naturalistic data; the relational floor keeps each rule's "
                                "most probable object (leave it false)")
 
-        model = RelationalPosterior(ds, cfg, check_relational(ds), lambda *a: least_risk(ds.catalog, *a))
+        model = RelationalPosterior(ds, cfg, check_relational(ds))
     else:
         model = Posterior(ds, cfg, check_generator(ds)[1])
     out = []

@@ -58,6 +58,7 @@ from scipy.special import softmax
 
 from degusta_learn.scene import Catalog, Dataset, Episode, Placement, Table
 from degusta_learn.synth.geometry import fit_into, sizes_of
+from degusta_learn.synth.posterior import PosteriorPredictor
 from degusta_learn.synth.posterior_model import Trial, log_evidence
 from degusta_learn.synth.posterior_prior import GeneratorPrior, distinct_modes, sample_distinct
 from degusta_learn.synth.relational_habits import sample_relational_style
@@ -299,38 +300,29 @@ def _steps(trials: list[Trial], fit: Fit) -> list[float]:
     return out
 
 
-class RelationalPosterior:
+class RelationalPosterior(PosteriorPredictor):
     """The posterior-predictive predictor of one relational dataset (module docstring)."""
 
-    def __init__(self, ds: Dataset, cfg, options: dict, least_risk):
-        self.ds, self.cfg, self.least_risk = ds, cfg, least_risk
+    kind = "structure"
+
+    def __init__(self, ds: Dataset, cfg, options: dict):
+        self.ds, self.cfg = ds, cfg
         tables = [ds.tables[t] for t in sorted(ds.tables)]
         multi, noise = float(options.get("multi", 0.2)), float(options.get("noise", 1.0))
         self.prior = RelationalPrior.draw(ds.catalog, tables, cfg.prior_styles, cfg.seed, multi, noise)
         rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x7472757468]))
-        self._truth = [sample_relational_style(rng, f"draw{i}", ds.catalog, tables, multi, noise)
-                       for i in range(cfg.samples)]
+        self._truth_styles = [sample_relational_style(rng, f"draw{i}", ds.catalog, tables, multi, noise)
+                              for i in range(cfg.samples)]
         self._prior_answer: dict[int, tuple[list[Placement], dict]] = {}
 
-    def predict(self, ep: Episode) -> tuple[list[Placement], dict]:
-        table = self.ds.tables[self.ds.arrangement(ep.participant, ep.target).table]
-        if not ep.context:
-            if table.id not in self._prior_answer:
-                self._prior_answer[table.id] = self._prior_predictive(table)
-            return self._prior_answer[table.id]
-        rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, *map(ord, ep.id)]))
-        return self._posterior_predictive(ep, table, rng)
+    def _expected(self, style: RelationalStyle, table: Table) -> list[Placement]:
+        return expected_relational(style, table)
 
-    def _prior_predictive(self, table: Table) -> tuple[list[Placement], dict]:
-        rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, table.id]))
-        candidates = []
-        for style in self.prior.styles[:self.cfg.candidates]:
-            placements = expected_relational(style, table)
-            ids = self.prior.taste.prior_objects([self.ds.catalog[p.object].type for p in placements])
-            candidates.append([Placement(o, p.x, p.y, p.rotation) for o, p in zip(ids, placements)])
-        draws = [sample_relational(s, table, self.ds.catalog, rng) for s in self._truth]
-        best, risk = self.least_risk(list(range(len(candidates))), candidates.__getitem__, draws)
-        return candidates[best], {"context": 0, "expected_set_rmsd": round(risk, 5), "structure": "prior"}
+    def _sample(self, style: RelationalStyle, table: Table, rng) -> list[Placement]:
+        return sample_relational(style, table, self.ds.catalog, rng)
+
+    def _prior_objects(self, types: list[str]) -> list[int]:
+        return self.prior.taste.prior_objects(types)
 
     def _fits(self, trials: list[Trial]) -> list[Fit]:
         """The `structures` structures that explain the context best at their draws' numbers, fitted."""
@@ -401,7 +393,7 @@ class RelationalPosterior:
 
         likely = [h for h, w in enumerate(weights) if w >= MIN_WEIGHT] or [int(np.argmax(weights))]
         states = [(h, tuple(q >= tau for q in per_fit[h][2])) for h in likely for tau in THRESHOLDS]
-        state, risk = self.least_risk(states, answer, draws)
+        state, risk = self._least_risk(states, answer, draws)
         moves = 0
         for _ in range(self.cfg.search):
             h, include = state
@@ -410,7 +402,7 @@ class RelationalPosterior:
                      if not per_fit[h][1][a]]  # an always-set rule (every plate) stays set
             if not near:
                 break
-            found, found_risk = self.least_risk(near, answer, draws)
+            found, found_risk = self._least_risk(near, answer, draws)
             if found_risk >= risk:
                 break
             state, risk, moves = found, found_risk, moves + 1
