@@ -12,7 +12,8 @@ from degusta_learn.errors import DegustaError
 from degusta_learn.metrics import score_many, score_prediction
 from degusta_learn.scene import Arrangement, Dataset, Episode, default_catalog, default_tables, load_dataset, save_dataset
 from degusta_learn.synth import naturalistic_with_styles
-from degusta_learn.synth.posterior import PosteriorConfig, Posterior, check_generator, expected_set_rmsd
+from degusta_learn.synth.posterior import Posterior, PosteriorConfig
+from degusta_learn.synth.posterior_base import check_generator, expected_set_rmsd
 from degusta_learn.synth.posterior_prior import GeneratorPrior
 from degusta_learn.synth.realize import expected_arrangement, sample_arrangement
 from degusta_learn.synth.style import Setting, Slot, Style

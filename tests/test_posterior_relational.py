@@ -14,7 +14,8 @@ from degusta_learn.methods import get_method
 from degusta_learn.metrics import score_many
 from degusta_learn.scene import load_dataset, make_episodes, save_dataset
 from degusta_learn.synth import generate_dataset, relational_with_styles
-from degusta_learn.synth.posterior import PosteriorConfig, check_relational
+from degusta_learn.synth.posterior import PosteriorConfig
+from degusta_learn.synth.posterior_base import check_relational
 from degusta_learn.synth.posterior_model import Trial
 from degusta_learn.synth.relational_posterior import RelationalPosterior, RelationalPrior, fit_structure, signature
 from degusta_learn.synth.relational_realize import expected_relational, oracle_rules, place

@@ -58,7 +58,7 @@ from scipy.special import softmax
 
 from degusta_learn.scene import Catalog, Dataset, Episode, Placement, Table
 from degusta_learn.synth.geometry import fit_into, sizes_of
-from degusta_learn.synth.posterior import PosteriorPredictor
+from degusta_learn.synth.posterior_base import PosteriorPredictor
 from degusta_learn.synth.posterior_model import Trial, log_evidence
 from degusta_learn.synth.posterior_prior import GeneratorPrior, distinct_modes, sample_distinct
 from degusta_learn.synth.relational_habits import sample_relational_style
