@@ -60,6 +60,26 @@ def test_forward_backward_shapes(setup):
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
+def test_rotation_and_order_start_from_what_the_context_shows(setup):
+    """With the heads' corrections at zero, every slot's rotation is its members' mean and its step their mean
+    context step (the slot heuristic's answer): decoding then orders the slots and turns them as the context did."""
+    from degusta_learn.baselines.learned.slot_model import MEAN_STEP
+
+    ds, vocab, val = setup
+    model = tiny(vocab)
+    with torch.no_grad():
+        model.head.weight.zero_()
+        model.head.bias.zero_()
+    batch = collate_slots([val[i] for i in (40, 80)])  # contexts 2 and 4
+    out = model(batch)
+    mask = batch["slot_mask"]
+    mean_rot = torch.nn.functional.normalize(batch["slot_rot"], dim=-1)
+    torch.testing.assert_close(out["rot"][mask], mean_rot[mask])
+    torch.testing.assert_close(out["step"][mask], batch["slot_feat"][..., MEAN_STEP][mask])
+    angle = torch.rad2deg(torch.atan2(out["rot"][..., 0], out["rot"][..., 1])) % 360.0
+    assert angle[mask].std() > 1.0  # the context's rotations differ between slots: not one learned constant
+
+
 def test_a_few_steps_change_every_parameter(setup):
     ds, vocab, val = setup
     model = tiny(vocab)

@@ -97,7 +97,7 @@ def test_checkpoint_of_another_kind_or_no_checkpoint_is_refused(trained, tmp_pat
         load_model(tmp_path / "other.ckpt")
     ckpt["hyper_parameters"].update(kind="learned", format=1)  # the autoregressive model of an older version
     torch.save(ckpt, tmp_path / "old.ckpt")
-    with pytest.raises(DegustaError, match="format 1; this version reads format 2.*retrain"):
+    with pytest.raises(DegustaError, match="format 1; this version reads format 3.*retrain"):
         load_model(tmp_path / "old.ckpt")
     (tmp_path / "junk.ckpt").write_text("not a checkpoint")
     with pytest.raises(DegustaError, match="junk.ckpt: not a loadable"):

@@ -36,7 +36,7 @@ from degusta_learn.training import gather_unique_rows
 
 KIND = "learned"
 LEARNED_OPTIM = OptimConfig(lr=1e-3, weight_decay=0.01, warmup_steps=100)  # the learned model's defaults
-FORMAT = 2  # 1: the autoregressive token model (before the slot model); refused by predict.load_model
+FORMAT = 3  # 1: the autoregressive token model; 2: rotation and step heads without the slot's own (refused)
 
 
 def population_pairs(population: dict) -> list:

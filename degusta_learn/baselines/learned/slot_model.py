@@ -16,7 +16,10 @@ Architecture (B batch, S slots, d = `d_model`, O = catalog objects):
          of the slot's type (cross-entropy on the slots the target sets);
       3. where: the slot's carried position + a learned residual (squared error after removing the
          residuals' mean over the set slots: the metric registers layouts, a common shift is free);
-      4. rotation (sin, cos; loss 1 - cos of the error) and the placement step (squared error), for order.
+      4. rotation: the members' mean (sin, cos) + a learned (sin, cos), normalized (loss 1 - cos of the error);
+      5. the placement step, for order: the members' mean context step + a learned residual (squared error).
+    Position, rotation and step start from what the context shows (the slot heuristic's answer); the heads
+    learn the corrections.
 
 Decoding: the slots with P(set) >= 0.5 (at least `min_objects`, most likely first); objects by one
 Hungarian assignment over those slots (scipy `linear_sum_assignment` on -log P(object | slot), so no object
@@ -56,6 +59,7 @@ N_FREQ = 4
 RESIDUAL_SCALE = 0.05  # the position head's output x this = residual in normalized table units
 POSITION = slice(SLOT_FEATURES.index("u"), SLOT_FEATURES.index("dy") + 1)  # u, v, dx, dy: Fourier-encoded
 CONTEXT = SLOT_FEATURES.index("k / 4")
+MEAN_STEP = SLOT_FEATURES.index("mean step / max_objects")
 
 
 @dataclass
@@ -82,7 +86,7 @@ class ModelConfig:
     """Loss weight of the position residual (squared error x 100, after removing the mean residual)."""
     w_rotation: float = 0.2
     """Loss weight of the circular rotation loss."""
-    w_step: float = 0.2
+    w_step: float = 1.0
     """Loss weight of the placement-step regression (it orders the prediction)."""
 
     def __post_init__(self):
@@ -117,7 +121,7 @@ class SlotModel(nn.Module):
         layer = nn.TransformerEncoderLayer(d, cfg.n_heads, cfg.d_ff, cfg.dropout, activation="gelu",
                                            batch_first=True, norm_first=True)
         self.encoder = nn.TransformerEncoder(layer, cfg.n_layers, norm=nn.LayerNorm(d), enable_nested_tensor=False)
-        self.head = nn.Linear(d, 6)  # [set logit | residual dx, dy | sin, cos | step]
+        self.head = nn.Linear(d, 6)  # [set logit | residual dx, dy | residual sin, cos | residual step]
         self.obj_query = nn.Linear(d, d)
         self.copy = _mlp(5, 16, 1)
 
@@ -130,7 +134,8 @@ class SlotModel(nn.Module):
 
     def forward(self, batch: dict) -> dict:
         """Per-slot outputs: "set" (B, S) logits, "obj" (B, S, O) log-probabilities (-inf off the slot's
-        type), "xy" (B, S, 2) positions, "rot" (B, S, 2) (sin, cos), "step" (B, S)."""
+        type), "xy" (B, S, 2) positions, "rot" (B, S, 2) unit (sin, cos), "step" (B, S); each of the last three
+        is the slot's own (carried position, members' mean rotation and step) plus the head's correction."""
         E = self.object_table()
         feat, mask = batch["slot_feat"], batch["slot_mask"]
         votes = batch["slot_votes"]  # (B, S, O)
@@ -151,9 +156,9 @@ class SlotModel(nn.Module):
                                batch["taste"][:, None].expand(*votes.shape, 2)], -1)  # (B, S, O, 5)
         logits = (self.obj_query(h) @ E.T) / math.sqrt(self.cfg.d_model) + self.copy(copy_feat)[..., 0]
         logits = logits.masked_fill(~same_type, float("-inf"))
-        rot = F.normalize(out[..., 3:5], dim=-1, eps=1e-6)
+        rot = F.normalize(batch["slot_rot"] + out[..., 3:5], dim=-1, eps=1e-6)
         return {"set": out[..., 0], "obj": logits.log_softmax(-1), "xy": batch["slot_xy"] + RESIDUAL_SCALE * out[..., 1:3],
-                "rot": rot, "step": out[..., 5]}
+                "rot": rot, "step": feat[..., MEAN_STEP] + out[..., 5]}
 
     def loss(self, batch: dict, out: dict) -> dict[str, torch.Tensor]:
         cfg = self.cfg
