@@ -19,6 +19,9 @@ from degusta_learn.scene import Catalog, Dataset, Episode, Placement, Table
 
 GENERATOR = "degusta_learn.synth.naturalistic"
 RELATIONAL = "degusta_learn.synth.relational"
+REFUSE = ("posterior needs data made by `degusta data generate naturalistic` or `degusta data generate relational` "
+          "(its generator is the prior)")
+"""The first part of every refusal of data neither generator made."""
 
 
 def check_generator(ds: Dataset) -> tuple[int, bool]:
@@ -48,10 +51,6 @@ def check_relational(ds: Dataset) -> dict:
     made, _ = relational_with_styles(meta["seed"], options)
     _same_arrangements(ds, made, f"with {_where(ds)}'s seed {meta['seed']} and options")
     return {"multi": options.multi, "noise": options.noise}
-
-
-REFUSE = ("posterior needs data made by `degusta data generate naturalistic` or `degusta data generate relational` "
-          "(its generator is the prior)")
 
 
 def _where(ds: Dataset) -> str:
