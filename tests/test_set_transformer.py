@@ -125,6 +125,44 @@ def test_a_few_steps_on_one_batch_lower_the_loss():
     assert set_loss(model(batch), batch, model.cfg)["loss"].item() < 0.5 * first
 
 
+def test_rotation_and_order_start_from_the_placed_objects_context_tokens():
+    """With the heads' corrections at zero, a query placing an object the context shows once takes that token's
+    position, rotation and step exactly, whatever else it attends to; an object the context lacks gets what the
+    whole pointer shows."""
+    from degusta_learn.baselines.set_transformer.encoding import CARRIED, ROTATION, STEP
+
+    ds = make_small_dataset()
+    vocab = Vocab.from_dataset(ds)
+    torch.manual_seed(0)
+    model = SetTransformer(ModelConfig(d_model=16, n_heads=2, n_encoder_layers=1, n_decoder_layers=1, d_ff=32,
+                                       n_queries=8), vocab)
+    with torch.no_grad():
+        model.head.weight.zero_()
+        model.head.bias.zero_()
+    encode = SetEncoder(vocab, ds.tables, 8)
+    trials = next(iter(ds.by_participant().values()))
+    batch = collate_sets([encode(trials[:1], trials[4].table, trials[4])])  # context 1: each object once
+    out = model(batch)
+    feat, tok_obj = batch["tok_feat"][0], batch["tok_obj"][0]
+    n_tok = int(batch["tok_mask"][0].sum())
+    assert len(set(tok_obj[:n_tok].tolist())) == n_tok
+    for t in range(n_tok):
+        for q in range(8):
+            placed = out["placing"](torch.tensor(0), torch.tensor(q), tok_obj[t])
+            torch.testing.assert_close(placed["xy"], feat[t, CARRIED])
+            torch.testing.assert_close(placed["rot"], torch.nn.functional.normalize(feat[t, ROTATION], dim=-1))
+            torch.testing.assert_close(placed["step"], feat[t, STEP])
+    absent = next(o for o in range(vocab.n_objects) if o not in tok_obj[:n_tok].tolist())
+    placed = out["placing"](torch.tensor(0), torch.tensor(2), torch.tensor(absent))
+    for key in ("xy", "rot", "step"):
+        torch.testing.assert_close(placed[key], out[key][0, 2])
+    objs, _, rots = model.decode(batch, min_objects=3)
+    shown = {int(tok_obj[t]): math.degrees(math.atan2(*feat[t, ROTATION].tolist())) % 360.0 for t in range(n_tok)}
+    for row, angle in zip(objs[0], rots[0]):
+        if row in shown:
+            assert angle == pytest.approx(shown[row], abs=1e-3)
+
+
 def _metrics(run: Path) -> list[dict]:
     with open(run / "csv/version_0/metrics.csv") as f:
         return list(csv.DictReader(f))

@@ -39,6 +39,7 @@ TOKEN_FEATURES = ("u", "v", "x", "y", "dx", "dy", "carried x", "carried y", "sin
 POSITIONS = slice(0, 8)  # u, v, x, y, dx, dy, carried x, y: Fourier-encoded by the model
 CARRIED = slice(6, 8)  # where the model's pointer reads a token's position
 ROTATION = slice(8, 10)  # ... and its rotation (sin, cos)
+STEP = TOKEN_FEATURES.index("step / n_queries")  # ... and its placement step
 TOKEN_DIM = len(TOKEN_FEATURES)
 
 

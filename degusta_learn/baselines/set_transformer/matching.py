@@ -7,7 +7,7 @@ most one target object j by one optimal assignment (scipy `linear_sum_assignment
               + w_position * POSITION_SCALE * |xy_i(object_j) - xy_j|^2          # where
 
 (DETR's class cost -log p(class) with its "no object" class factored out as the present logit; its box cost as
-squared distance, the quantity RMSD is made of; xy_i(o) is where query i puts object o, model.py's `xy_of`,
+squared distance, the quantity RMSD is made of; xy_i(o) is where query i puts object o, model.py's `placing`,
 or its one position `xy_i` for a model without one). With Q >= M every target object gets one query; the other
 Q - M queries are unmatched and trained toward "absent". The assignment is a constant of the step (no gradient
 flows through it); on the matched pairs:
@@ -16,8 +16,8 @@ flows through it); on the matched pairs:
                (weight `absent_weight`), divided by the total weight
     object   = mean over matched pairs of -log p_i(object_j)
     position = mean over matched pairs of POSITION_SCALE * |xy_i(object_j) - xy_j|^2   (teacher-forced object)
-    rotation = mean over matched pairs of 1 - cos(rotation error)   (from the predicted (sin, cos))
-    step     = mean over matched pairs of (step_i - step_j)^2      (placement step / n_queries: the order)
+    rotation = mean over matched pairs of 1 - cos(rotation error)   (query i's (sin, cos) for object_j)
+    step     = mean over matched pairs of (step_i(object_j) - step_j)^2   (placement step / n_queries: the order)
     loss     = w_present * present + w_object * object + w_position * position + w_rotation * rotation
                + w_step * step
 
@@ -54,13 +54,13 @@ class LossWeights(Protocol):
     absent_weight: float
 
 
-def pair_xy(out: dict, b: torch.Tensor, q: torch.Tensor, objects: torch.Tensor) -> torch.Tensor:
-    """(..., 2) positions of queries `q` of episodes `b` placing catalog rows `objects` (index tensors of one
-    shape): the model's position for that object (`out["xy_of"]`, model.py) when it has one, else the query's own
-    position `out["xy"]`."""
-    if "xy_of" in out:
-        return out["xy_of"](b, q, objects)
-    return out["xy"][b, q]
+def placing(out: dict, b: torch.Tensor, q: torch.Tensor, objects: torch.Tensor) -> dict[str, torch.Tensor]:
+    """"xy" (..., 2), "rot" (..., 2) and "step" (...) of queries `q` of episodes `b` placing catalog rows `objects`
+    (index tensors of one shape): the model's own for that object (`out["placing"]`, model.py) when it has them,
+    else the query's one position, rotation and step."""
+    if "placing" in out:
+        return out["placing"](b, q, objects)
+    return {key: out[key][b, q] for key in ("xy", "rot", "step")}
 
 
 def match_cost(present: torch.Tensor, obj_logp: torch.Tensor, xy: torch.Tensor, y_obj: torch.Tensor,
@@ -81,7 +81,7 @@ def assign(out: dict, batch: dict, cfg: LossWeights) -> list[tuple[np.ndarray, n
             m = int(batch["y_mask"][b].sum())
             y_obj = batch["y_obj"][b, :m]
             q = torch.arange(n_queries, device=y_obj.device)[:, None].expand(-1, m)
-            xy = pair_xy(out, torch.full_like(q, b), q, y_obj[None].expand(n_queries, -1))  # (Q, M, 2)
+            xy = placing(out, torch.full_like(q, b), q, y_obj[None].expand(n_queries, -1))["xy"]  # (Q, M, 2)
             cost = match_cost(out["present"][b].float(), out["obj"][b].float(), xy.float(), y_obj,
                               batch["y_xy"][b, :m].float(), cfg.w_object, cfg.w_position)
             pairs.append(linear_sum_assignment(cost.cpu().numpy()))
@@ -113,12 +113,12 @@ def set_loss(out: dict, batch: dict, cfg: LossWeights,
     l_present = (F.binary_cross_entropy_with_logits(out["present"], matched, reduction="none") * weight).sum() \
         / weight.sum()
     l_object = -out["obj"][b_idx, q_idx, batch["y_obj"][b_idx, t_idx]].sum() / n
-    xy = pair_xy(out, b_idx, q_idx, batch["y_obj"][b_idx, t_idx])  # each query placing its matched object
-    l_position = POSITION_SCALE * ((xy - batch["y_xy"][b_idx, t_idx]) ** 2).sum() / n
+    placed = placing(out, b_idx, q_idx, batch["y_obj"][b_idx, t_idx])  # each query placing its matched object
+    l_position = POSITION_SCALE * ((placed["xy"] - batch["y_xy"][b_idx, t_idx]) ** 2).sum() / n
     y_rot = batch["y_rot"][b_idx, t_idx]
-    rot = out["rot"][b_idx, q_idx]  # (P, 2) = (sin, cos): cos(error) = sin_p sin_t + cos_p cos_t
+    rot = placed["rot"]  # (P, 2) = (sin, cos): cos(error) = sin_p sin_t + cos_p cos_t
     l_rotation = (1.0 - (rot[:, 0] * torch.sin(y_rot) + rot[:, 1] * torch.cos(y_rot))).sum() / n
-    l_step = ((out["step"][b_idx, q_idx] - batch["y_step"][b_idx, t_idx]) ** 2).sum() / n
+    l_step = ((placed["step"] - batch["y_step"][b_idx, t_idx]) ** 2).sum() / n
     total = (cfg.w_present * l_present + cfg.w_object * l_object + cfg.w_position * l_position
              + cfg.w_rotation * l_rotation + cfg.w_step * l_step)
     return {"loss": total, "present": l_present, "object": l_object, "position": l_position, "rotation": l_rotation,

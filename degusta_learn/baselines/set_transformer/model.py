@@ -17,10 +17,13 @@ Architecture (B batch, T context tokens, Q = `n_queries`, d = `d_model`, O = cat
                g = softmax((W h) . E_o / sqrt(d) + copy(share_o)) over the whole catalog, share_o the fraction of
                context arrangements holding o and copy a small MLP (a pointer-generator; at context 0 every query
                points at the target token and g decides alone);
-      where:   for the object o it places, the pointer's mean over the context tokens *of that object* of their
-               positions carried onto the target table (`xy_of`; an object the context lacks: the whole pointer's
-               mean, the target token standing for the table's centre) + RESIDUAL_SCALE x a linear residual;
-      rotation: normalise(sum_t a_t (sin, cos)_t + a linear residual); the placement step (step / n_queries).
+      where, rotation, step: for the object o it places, the pointer's mean over the context tokens *of that
+               object* of their positions carried onto the target table, their (sin, cos) and their placement steps
+               (`placing`; an object the context lacks: the whole pointer's mean, the target token standing for
+               the table's centre, no rotation and the first step), each plus a linear correction: RESIDUAL_SCALE x
+               (dx, dy); (sin, cos) added, then normalised; step (step / n_queries) added. What the person did
+               with this object before is the starting point, as the slot heuristic's answer is the learned slot
+               model's.
 
 Why a pointer, and classification over the catalog (not features + nearest catalog object): the prediction must
 name catalog ids (object accuracy is by id, matching by features), and what a person sets is mostly what they set
@@ -33,8 +36,8 @@ catalog object would lose the id of an object the person used and tie between ob
 
 Training: the Hungarian matching loss (matching.py). Decoding: the queries with P(present) >= `threshold` (at
 least `min_objects`, most likely first, at most Q); their objects by one Hungarian assignment on -log p(object |
-query) (`linear_sum_assignment`: no catalog object twice, as in every arrangement of the data); each position for
-the object placed (`xy_of`), rotations from the heads; in order of the predicted step.
+query) (`linear_sum_assignment`: no catalog object twice, as in every arrangement of the data); each position,
+rotation and step for the object placed (`placing`); in order of the predicted step.
 
 Usage:
     model = SetTransformer(ModelConfig(d_model=32, n_encoder_layers=1, n_decoder_layers=1), vocab)
@@ -54,7 +57,7 @@ from scipy.optimize import linear_sum_assignment
 from torch import nn
 
 from degusta_learn.baselines.learned.features import GEOM_DIM, Vocab, fourier
-from degusta_learn.baselines.set_transformer.encoding import CARRIED, POSITIONS, ROTATION, TOKEN_DIM
+from degusta_learn.baselines.set_transformer.encoding import CARRIED, POSITIONS, ROTATION, STEP, TOKEN_DIM
 from degusta_learn.config import bounded
 from degusta_learn.errors import DegustaError
 from degusta_learn.names import CONTEXT_LENGTHS
@@ -152,9 +155,9 @@ class SetTransformer(nn.Module):
         return e + self.obj_feat[1](self.second[:, 0]) + self.obj_feat[2](self.second[:, 1])
 
     def forward(self, batch: dict) -> dict:
-        """Per-query outputs: "present" (B, Q) logits, "obj" (B, Q, O) log-probabilities, "xy" (B, Q, 2) image
-        coordinates (the whole pointer's), "xy_of" (the position for a given object, see below), "rot" (B, Q, 2)
-        unit (sin, cos), "step" (B, Q)."""
+        """Per-query outputs: "present" (B, Q) logits, "obj" (B, Q, O) log-probabilities; from the whole pointer,
+        "xy" (B, Q, 2) image coordinates, "rot" (B, Q, 2) unit (sin, cos), "step" (B, Q); and "placing", the
+        position, rotation and step of a query for a given object (see below), which training and decoding use."""
         E = self.object_table()
         feat, mask = batch["tok_feat"], batch["tok_mask"]  # (B, T, F), (B, T)
         x = (self.tok_in(torch.cat([feat, fourier(feat[..., POSITIONS], N_FREQ)], -1)) + E[batch["tok_obj"]]
@@ -170,28 +173,35 @@ class SetTransformer(nn.Module):
         att = att.masked_fill(pad[:, None, :], float("-inf")).softmax(-1)
         centre = batch["tgt_geom"][:, None, 6:8]  # table_geometry: cx, cy
         carried = feat[..., CARRIED]  # (B, T, 2)
-        anchors = torch.cat([centre, carried], 1)  # (B, 1 + T, 2)
-        turns = torch.cat([feat.new_zeros(len(feat), 1, 2), feat[..., ROTATION]], 1)  # the target token: none
+        # what each pointed-at token shows: [position on the target table | rotation (sin, cos) | placement step];
+        # the target token stands for the table's centre, no rotation and the first step
+        shown = torch.cat([torch.cat([centre, feat.new_zeros(len(feat), 1, 3)], -1),
+                           torch.cat([carried, feat[..., ROTATION], feat[..., STEP, None]], -1)], 1)  # (B, 1 + T, 5)
         # objects: copied from the pointed-at tokens, the target token's share from the generator
         gen = ((self.obj_query(h) @ E.T) / math.sqrt(self.cfg.d_model)
                + self.copy(batch["share"][..., None])[..., 0][:, None]).softmax(-1)  # (B, Q, O)
         copied = torch.zeros_like(gen).scatter_add_(-1, batch["tok_obj"][:, None].expand(-1, gen.shape[1], -1),
                                                     att[..., 1:])
         p_obj = copied + att[..., :1] * gen
-        pointed = att @ anchors  # (B, Q, 2): where the query points, whatever object it places
-        residual = RESIDUAL_SCALE * out[..., 1:3]
+        pointed = att @ shown  # (B, Q, 5): what the query points at, whatever object it places
 
-        def xy_of(b: torch.Tensor, q: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
-            """(..., 2) position of query q of episode b when it places catalog row o (index tensors of one shape):
-            the pointer restricted to the context tokens of that object, else (an object the context lacks) the
-            whole pointer; plus the residual."""
+        def corrected(seen: torch.Tensor, head: torch.Tensor) -> dict[str, torch.Tensor]:
+            """What a query points at, `seen` (..., 5), plus its heads' corrections, `head` (..., 6)."""
+            return {"xy": seen[..., :2] + RESIDUAL_SCALE * head[..., 1:3],
+                    "rot": F.normalize(seen[..., 2:4] + head[..., 3:5], dim=-1, eps=1e-6),
+                    "step": seen[..., 4] + head[..., 5]}
+
+        def placing(b: torch.Tensor, q: torch.Tensor, o: torch.Tensor) -> dict[str, torch.Tensor]:
+            """Position (..., 2), rotation (..., 2) and step (...) of query q of episode b when it places catalog
+            row o (index tensors of one shape): the pointer restricted to the context tokens of that object, else
+            (an object the context lacks) the whole pointer; plus the heads' corrections."""
             w = att[b, q, 1:] * ((batch["tok_obj"][b] == o[..., None]) & mask[b])  # (..., T)
             total = w.sum(-1, keepdim=True)
-            same = (w[..., None] * carried[b]).sum(-2) / total.clamp_min(1e-30)
-            return torch.where(total > 0, same, pointed[b, q]) + residual[b, q]
+            same = (w[..., None] * shown[b, 1:]).sum(-2) / total.clamp_min(1e-30)
+            return corrected(torch.where(total > 0, same, pointed[b, q]), out[b, q])
 
-        return {"present": out[..., 0], "obj": p_obj.clamp_min(1e-12).log(), "xy": pointed + residual, "xy_of": xy_of,
-                "rot": F.normalize(att @ turns + out[..., 3:5], dim=-1, eps=1e-6), "step": out[..., 5]}
+        return {"present": out[..., 0], "obj": p_obj.clamp_min(1e-12).log(), **corrected(pointed, out),
+                "placing": placing}
 
     @torch.no_grad()
     def decode(self, batch: dict, min_objects: int = 1, threshold: float = 0.5
@@ -208,19 +218,17 @@ class SetTransformer(nn.Module):
         self.train(was_training)
         p = torch.sigmoid(out["present"].float()).cpu().numpy()
         logp = out["obj"].float().cpu().numpy()
-        rot, step = (out[k].float().cpu().numpy() for k in ("rot", "step"))
         objs, xys, rots = [], [], []
         for b in range(len(p)):
             ranked = np.argsort(-p[b], kind="stable")
             n = int((p[b] >= threshold).sum())
             chosen = ranked[:min(max(n, min_objects), len(ranked))]
             rows, cols = linear_sum_assignment(-logp[b, chosen])  # no catalog object twice
-            queries, obj = chosen[rows], cols
-            order = np.argsort(step[b, queries], kind="stable")
-            queries, obj = queries[order], obj[order]
-            q = torch.as_tensor(queries, device=out["step"].device)
-            xy = out["xy_of"](torch.full_like(q, b), q, torch.as_tensor(obj, device=q.device))
-            objs.append(obj.tolist())
-            xys.append(xy.float().cpu().numpy().astype(float))
-            rots.append(np.rad2deg(np.arctan2(rot[b, queries, 0], rot[b, queries, 1])) % 360.0)
+            q = torch.as_tensor(chosen[rows], device=out["step"].device)
+            placed = {k: v.float().cpu().numpy().astype(float)
+                      for k, v in out["placing"](torch.full_like(q, b), q, torch.as_tensor(cols, device=q.device)).items()}
+            order = np.argsort(placed["step"], kind="stable")
+            objs.append(cols[order].tolist())
+            xys.append(placed["xy"][order])
+            rots.append(np.rad2deg(np.arctan2(placed["rot"][order, 0], placed["rot"][order, 1])) % 360.0)
         return objs, xys, rots
