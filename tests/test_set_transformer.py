@@ -239,7 +239,7 @@ def test_the_checkpoint_predicts_through_the_registry(trained, tmp_path):
                            "split=val", f"checkpoint={run}"])
 
 
-def test_a_checkpoint_of_the_other_kind_is_refused_both_ways(trained, tmp_path):
+def test_a_checkpoint_of_the_other_kind_or_an_older_format_is_refused(trained, tmp_path):
     run, _, _ = trained
     with pytest.raises(DegustaError, match="kind 'set_transformer', not a 'learned'"):
         load_learned(run / "best.ckpt")
@@ -251,6 +251,10 @@ def test_a_checkpoint_of_the_other_kind_is_refused_both_ways(trained, tmp_path):
     (tmp_path / "junk.ckpt").write_text("not a checkpoint")
     with pytest.raises(DegustaError, match="junk.ckpt: not a loadable"):
         load_model(tmp_path / "junk.ckpt")
+    ckpt["hyper_parameters"].update(kind="set_transformer", format=1)  # rotation and step heads from scratch
+    torch.save(ckpt, tmp_path / "format1.ckpt")
+    with pytest.raises(DegustaError, match="format 1; this version reads format 2.*retrain"):
+        load_model(tmp_path / "format1.ckpt")
 
 
 @pytest.mark.parametrize("overrides, message", [

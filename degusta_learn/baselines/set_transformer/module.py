@@ -30,7 +30,7 @@ from degusta_learn.scene import Placement
 from degusta_learn.training import gather_unique_rows
 
 KIND = "set_transformer"
-FORMAT = 2  # 2: rotation and step start from the pointed-at tokens of the placed object
+FORMAT = 2  # 1: rotation and step heads without the placed object's context tokens (refused)
 SET_OPTIM = OptimConfig(lr=5e-4, weight_decay=0.01, warmup_steps=100)  # the set transformer's defaults
 VAL_METRICS = ("set_rmsd", "set_rmsd_unregistered", "object_accuracy", "rmsd", "count_error")
 PER_CONTEXT = ("set_rmsd", "object_accuracy")
