@@ -20,8 +20,9 @@ Architecture (B batch, T context tokens, Q = `n_queries`, d = `d_model`, O = cat
       where, rotation, step: for the object o it places, the pointer's mean over the context tokens *of that
                object* of their positions carried onto the target table, their (sin, cos) and their placement steps
                (`placing`; an object the context lacks: the whole pointer's mean, the target token standing for
-               the table's centre, no rotation and the first step), each plus a linear correction: RESIDUAL_SCALE x
-               (dx, dy); (sin, cos) added, then normalised; step (step / n_queries) added. What the person did
+               the table's centre, (sin, cos) = (0, 0) (no rotation to start from) and the first step), each
+               plus a linear correction: RESIDUAL_SCALE x (dx, dy); (sin, cos) added, then normalised; step
+               (step / n_queries) added. What the person did
                with this object before is the starting point, as the slot heuristic's answer is the learned slot
                model's.
 
@@ -174,7 +175,7 @@ class SetTransformer(nn.Module):
         centre = batch["tgt_geom"][:, None, 6:8]  # table_geometry: cx, cy
         carried = feat[..., CARRIED]  # (B, T, 2)
         # what each pointed-at token shows: [position on the target table | rotation (sin, cos) | placement step];
-        # the target token stands for the table's centre, no rotation and the first step
+        # the target token stands for the table's centre, (sin, cos) = (0, 0) (nothing to start from), the first step
         shown = torch.cat([torch.cat([centre, feat.new_zeros(len(feat), 1, 3)], -1),
                            torch.cat([carried, feat[..., ROTATION], feat[..., STEP, None]], -1)], 1)  # (B, 1 + T, 5)
         # objects: copied from the pointed-at tokens, the target token's share from the generator
